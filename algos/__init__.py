@@ -1,0 +1,1 @@
+"""Training algorithms; the PPO/SAC training recipes arrive with the training issue."""

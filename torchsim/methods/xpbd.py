@@ -1,0 +1,155 @@
+"""XPBD: after an unconstrained substep, project joints, limits and contacts onto their constraints by position.
+
+Each joint is solved exactly (to first order) as one 6x6 block system (translation rows and rotation rows in
+block system, eliminated with 3x3 Schur complements, per joint. Joints of one colour share no body and run in
+parallel; colours, then limits, then contacts follow Gauss-Seidel. Contacts on the same body are averaged
+(Jacobi). Contact friction is positional Coulomb friction: the substep's tangential slip is undone up to
+``mu`` times the normal correction. Velocities are then the substep's displacement over ``h``.
+"""
+
+import torch
+
+from torchsim import integrator, joint_space, math, rigid
+from torchsim.actuators import dof_forces
+from torchsim.collision import contacts
+from torchsim.kinematics import Bodies, dof_values, joint_frames
+from torchsim.system import System
+
+
+def _wrap(angle: torch.Tensor) -> torch.Tensor:
+    return torch.atan2(torch.sin(angle), torch.cos(angle))
+
+
+def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pred: torch.Tensor) -> Bodies:
+    """Solve every joint colour by colour: anchors coincide, constrained axes align, hinge dofs stay in range,
+    and hinge dofs with armature keep its share of the correction.
+
+    Per joint, 3 translation rows and 3 rotation rows in the joint's hinge-slot coordinates (``G = A^-1`` maps a
+    relative rotation onto the slots' axes ``A``) are solved together by 3x3 Schur complements. A rotation row is
+    hard for a constrained direction or a dof beyond its limit, compliant with compliance ``1/J`` for a dof with
+    armature ``J`` (pulling it towards its force-driven prediction ``q_pred (B, D)``, as a rotor of inertia J
+    would), and absent for a free dof.
+    """
+    for colour in sys.jnt_colors:
+        child, parent = sys.jnt_child[colour], sys.jnt_parent[colour]
+        fr = joint_frames(sys, bodies, colour)
+        m_c, i_c = rigid.gather(inv, child)
+        m_p, i_p = rigid.gather(inv, parent)
+        s_c, s_p = math.skew(fr.r_child), math.skew(fr.r_parent)
+        eye = torch.eye(3, dtype=m_c.dtype, device=m_c.device)
+        k_ll = (m_c + m_p)[..., None] * eye - s_c @ i_c @ s_c - s_p @ i_p @ s_p
+        k_la = -(s_c @ i_c + s_p @ i_p)
+        k_aa = i_c + i_p
+
+        # rotation rows in hinge-slot coordinates
+        slot_dof = sys.jnt_slot_dof[colour][:, 3:]
+        has_dof = slot_dof >= 0
+        dof = slot_dof.clamp_min(0)
+        q = fr.q[..., 3:] + torch.where(has_dof, sys.dof_ref[dof], 0.0)
+        lo, hi = sys.dof_range[dof].unbind(-1)
+        violation = torch.where(has_dof & sys.dof_limited[dof], torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0), 0.0)
+        armature = torch.where(has_dof, sys.dof_armature[..., dof], 0.0)
+        mode = sys.jnt_mode[colour]
+        hard = (mode[:, :3] @ torch.tensor([[1.0, 1, 1], [0, 1, 1], [0, 0, 1]], dtype=mode.dtype, device=mode.device)) > 0
+        stop = hard | (violation != 0)
+        soft = ~stop & (armature > 0)
+        include = stop | soft
+        g = math.inv3(fr.axes[..., 3:, :].transpose(-1, -2))
+        error = torch.where(hard, math.matvec(g, fr.ang_err),
+                            torch.where(violation != 0, violation, _wrap(q - torch.where(has_dof, q_pred[:, dof], q))))
+        compliance = torch.where(soft, 1.0 / armature.clamp_min(1e-30), 0.0)
+        mask = include.to(q.dtype)
+        p_m = torch.diag_embed(mask)
+        gt = g.transpose(-1, -2)
+
+        p_l = fr.lin_proj
+        a = p_l @ k_ll @ p_l + (eye - p_l)  # identity on the free directions keeps the blocks invertible
+        b = p_l @ k_la @ gt @ p_m
+        c = p_m @ (g @ k_aa @ gt + torch.diag_embed(compliance)) @ p_m + torch.diag_embed(1.0 - mask)
+        a_inv = math.inv3(a)
+        bt_ainv = b.transpose(-1, -2) @ a_inv
+        rhs_l, rhs_s = -fr.lin_err, -mask * error
+        mu = math.matvec(math.inv3(c - bt_ainv @ b), rhs_s - math.matvec(bt_ainv, rhs_l))
+        p_lin = math.matvec(a_inv, rhs_l - math.matvec(b, mu))
+        bodies = rigid.apply_pair_position(bodies, inv, child, parent, fr.r_child, fr.r_parent, p_lin,
+                                           math.matvec(gt, mu))
+    return bodies
+
+
+def correct_slides(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pred: torch.Tensor) -> Bodies:
+    """Slide dofs: give armature its share of the projection's effect (see ``integrator.armature_impulse``),
+    then push them back inside their limits. (Hinge dofs get both inside ``project_joints``.)"""
+    fr = joint_frames(sys, bodies)
+    axes = dof_values(sys, fr.axes)
+    q = dof_values(sys, fr.q) + sys.dof_ref
+    slide = ~sys.dof_is_hinge
+    w = rigid.dof_inverse_mass(sys, inv, axes)
+    impulse = torch.where(slide, joint_space.armature_impulse(sys, inv, axes, q - q_pred), 0.0)
+    q = q + w * impulse
+    lo, hi = sys.dof_range.unbind(-1)
+    limited = slide & sys.dof_limited
+    violation = torch.where(limited, torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0), 0.0)
+    return rigid.apply_dof_impulse(sys, bodies, inv, axes, impulse - violation / w, position=True)
+
+
+def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.InverseInertia):
+    """Resolve penetration along the normal, then undo tangential slip within the Coulomb cone.
+
+    Returns the corrected bodies, the contacts, their activity and their averaging weights (velocity pass).
+    """
+    con = contacts(sys, bodies)
+    a, b = con.body_a, con.body_b
+    r_a = con.pos - bodies.x_pos[:, a]
+    r_b = con.pos - bodies.x_pos[:, b]
+    active = (con.depth > 0).to(con.depth.dtype)
+    scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[1])
+    scale_a, scale_b = scale_a[..., None], scale_b[..., None]
+    w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
+    lam_n = active * con.depth / w_n
+    # where the contact point was at the start of the substep, on each body
+    prev_a = previous.x_pos[:, a] + math.quat_rotate(previous.x_quat[:, a], math.quat_rotate_inv(bodies.x_quat[:, a], r_a))
+    prev_b = previous.x_pos[:, b] + math.quat_rotate(previous.x_quat[:, b], math.quat_rotate_inv(bodies.x_quat[:, b], r_b))
+    slip = prev_b - prev_a  # (p - prev_a) - (p - prev_b)
+    slip = slip - math.dot(slip, con.normal) * con.normal
+    slip_len = math.safe_norm(slip)
+    tangent = slip / slip_len
+    w_t = rigid.point_inverse_mass(inv, a, r_a, tangent) + rigid.point_inverse_mass(inv, b, r_b, tangent)
+    lam_t = torch.minimum(slip_len[..., 0] / w_t, con.friction * lam_n)
+    p_lin = lam_n[..., None] * con.normal - lam_t[..., None] * tangent
+    bodies = rigid.apply_pair_position(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
+    return bodies, con, active, scale_a, scale_b
+
+
+def stop_contacts(bodies: Bodies, inv: rigid.InverseInertia, con, active, scale_a, scale_b) -> Bodies:
+    """Velocity pass: active contacts end the substep with zero normal velocity (inelastic, MuJoCo has no
+    restitution); without it, depenetration would turn into a launch speed ``depth / h``."""
+    a, b = con.body_a, con.body_b
+    r_a = con.pos - bodies.x_pos[:, a]
+    r_b = con.pos - bodies.x_pos[:, b]
+    v_rel = (bodies.xd_vel[:, a] + math.cross(bodies.xd_ang[:, a], r_a)
+             - bodies.xd_vel[:, b] - math.cross(bodies.xd_ang[:, b], r_b))
+    w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
+    p_lin = (-active * (v_rel * con.normal).sum(-1) / w_n)[..., None] * con.normal
+    return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
+
+
+def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: torch.Tensor, h: float) -> Bodies:
+    """Forces -> velocities -> positions; project contacts, then joints (with limits and armature); velocities
+    from the displacement; inelastic contact velocity pass."""
+    inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
+    fr = joint_frames(sys, bodies)
+    axes = dof_values(sys, fr.axes)
+    q, qd = dof_values(sys, fr.q) + sys.dof_ref, dof_values(sys, fr.qd)
+    force, torque = rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, qd, ctrl))
+    after = integrator.velocity_update(sys, bodies, inv, inv_inertia_body, force, torque, h)
+    after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
+    q_pred = q + h * qd_pred
+    moved = integrator.integrate_positions(after, h)
+    inv = rigid.inverse_inertia(sys, moved.x_quat, inv_inertia_body)
+    moved, con, active, scale_a, scale_b = project_contacts(sys, moved, bodies, inv)
+    moved = project_joints(sys, moved, inv, q_pred)
+    if sys.jnt_has_slides:
+        moved = correct_slides(sys, moved, inv, q_pred)
+    xd_vel = (moved.x_pos - bodies.x_pos) / h
+    xd_ang = math.quat_to_rot_vec(math.quat_mul(moved.x_quat, math.quat_conj(bodies.x_quat))) / h
+    return stop_contacts(moved._replace(xd_vel=xd_vel, xd_ang=xd_ang), inv, con, active, scale_a, scale_b)

@@ -1,0 +1,63 @@
+"""``init`` and ``step``: the physics pipeline, one function per stage."""
+
+import torch
+
+from torchsim import rigid
+from torchsim.kinematics import forward, joint_frames, read_q, with_world
+from torchsim.methods import spring, xpbd
+from torchsim.state import State
+from torchsim.system import System
+
+SUBSTEP = {"spring": spring.substep, "xpbd": xpbd.substep}
+
+
+def _check(sys: System, name: str, x: torch.Tensor, width: int, batch: int | None = None) -> None:
+    if not isinstance(x, torch.Tensor):
+        raise TypeError(f"{name} must be a torch.Tensor, got {type(x).__name__}")
+    expected = f"({'B' if batch is None else batch}, {width})"
+    if x.ndim != 2 or x.shape[1] != width or (batch is not None and x.shape[0] != batch):
+        raise ValueError(f"{name} must have shape {expected}, got {tuple(x.shape)}")
+    if x.dtype != sys.dtype:
+        raise ValueError(f"{name} must have dtype {sys.dtype} (the System's), got {x.dtype}; use sys.to(dtype=...)")
+    if x.device != sys.device:
+        raise ValueError(f"{name} is on {x.device} but the System is on {sys.device}; use sys.to(device=...)")
+
+
+def init(sys: System, q: torch.Tensor, qd: torch.Tensor) -> State:
+    """State for generalized coordinates ``q (B, nq)`` and velocities ``qd (B, nv)`` (MuJoCo's qpos/qvel layout)."""
+    _check(sys, "q", q, sys.nq)
+    _check(sys, "qd", qd, sys.nv, q.shape[0])
+    bodies = with_world(*forward(sys, q, qd))
+    q, qd = read_q(sys, bodies, joint_frames(sys, bodies))
+    n = sys.num_bodies
+    return State(bodies.x_pos[:, :n], bodies.x_quat[:, :n], bodies.xd_vel[:, :n], bodies.xd_ang[:, :n], q, qd,
+                 torch.zeros(q.shape[0], dtype=torch.bool, device=q.device))
+
+
+def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
+    """Advance every env by ``sys.timestep`` under controls ``ctrl (B, nu)`` (``sys.substeps`` substeps)."""
+    _check(sys, "ctrl", ctrl, sys.nu, state.x_pos.shape[0])
+    h = sys.timestep / sys.substeps
+    inv_inertia_body = rigid.body_inverse_inertia(sys)
+    bodies = with_world(state.x_pos, state.x_quat, state.xd_vel, state.xd_ang)
+    for _ in range(sys.substeps):
+        bodies = SUBSTEP[sys.method](sys, bodies, ctrl, inv_inertia_body, h)
+    q, qd = read_q(sys, bodies, joint_frames(sys, bodies))
+    n = sys.num_bodies
+    new = State(bodies.x_pos[:, :n], bodies.x_quat[:, :n], bodies.xd_vel[:, :n], bodies.xd_ang[:, :n], q, qd,
+                state.diverged)
+    return contain_divergence(sys, state, new)
+
+
+def contain_divergence(sys: System, old: State, new: State) -> State:
+    """Flag envs whose new state is non-finite or out of bounds, and keep them at their last good state.
+
+    Envs never mix inside a step, so a diverged env cannot disturb the others; freezing it keeps its numbers
+    finite until the caller re-initialises it (e.g. a partial reset).
+    """
+    finite = torch.stack([torch.isfinite(t).flatten(1).all(1) for t in new[:6]]).all(0)
+    in_bounds = (new.x_pos.abs().amax((1, 2)) < sys.max_distance) & (
+        torch.maximum(new.xd_vel.abs().amax((1, 2)), new.xd_ang.abs().amax((1, 2))) < sys.max_speed)
+    diverged = old.diverged | ~(finite & in_bounds)
+    fields = [torch.where(diverged.view((-1,) + (1,) * (o.ndim - 1)), o, n) for o, n in zip(old[:6], new[:6])]
+    return State(*fields, diverged)

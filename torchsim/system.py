@@ -1,0 +1,185 @@
+"""``System``: the static model as tensors, built once by a loader and never branched on at step time."""
+
+import dataclasses
+from typing import NamedTuple
+
+import torch
+
+
+class ContactGroup(NamedTuple):
+    """All candidate geom pairs of one shape combination, evaluated together every substep.
+
+    Attributes:
+        kind: shape pair, e.g. ``"plane_sphere"``; geom ``a`` is the first shape named, ``b`` the second.
+        geom_a, geom_b: (P,) geom indices.
+        friction: (P,) or (B, P) sliding friction coefficient of the pair.
+        margin: (P,) distance at which contact activates [m] (MuJoCo ``margin``).
+    """
+
+    kind: str
+    geom_a: torch.Tensor
+    geom_b: torch.Tensor
+    friction: torch.Tensor
+    margin: torch.Tensor
+
+
+@dataclasses.dataclass(frozen=True)
+class System:
+    """A rigid-body model in maximal coordinates. ``N`` bodies, ``J`` constrained joints, ``D`` hinge/slide dofs,
+    ``U`` actuators, ``G`` geoms. Index ``N`` ("ext" indexing) denotes the static world.
+
+    Physical parameters marked *batchable* may carry a leading ``(B,)`` dimension so every env can differ
+    (domain randomisation) without rebuilding anything; the step only indexes their trailing dimensions.
+
+    Bodies:
+        body_mass: (N,) [kg], batchable.  body_inertia: (N, 3, 3) about the COM in the body frame, batchable.
+        body_ipos: (N, 3) COM in the body frame.  body_parent: (N,) ext index of the parent body.
+    Joints (one per non-free body; a body's hinges/slides/ball relative to its parent form one joint):
+        jnt_child, jnt_parent: (J,).  jnt_anchor_child: (J, 3) anchor from the child COM, child frame.
+        jnt_anchor_parent: (J, 3) anchor at q = 0 from the parent COM, parent frame (world frame for the world).
+        jnt_quat0: (J, 4) child frame in the parent frame at q = 0.
+        jnt_axes: (J, 3, 3) hinge axes a1..a3 (child frame); unused rows hold padding axes completing a basis.
+        jnt_mode: (J, 5) one-hot angular mode: [weld, 1 hinge, 2 hinges, 3 hinges, ball].
+        jnt_a2_sign: (J,) handedness a1 . (a2 x a3) of 3-hinge joints (1 otherwise).
+        jnt_slide_axes: (J, 3, 3) slide axes (rows, zero frame; unused rows zero).
+        jnt_slide_pinv: (J, 3, 3) pseudo-inverse mapping an anchor offset (zero frame) to slide coordinates.
+        jnt_lin_proj: (J, 3, 3) projector onto the constrained translation directions (zero frame).
+        jnt_colors: index tensors partitioning the joints so that no two joints of a colour share a body.
+        jnt_levels: index tensors of the joints at each tree depth (free bodies are roots).
+        jnt_slot_dof: (J, 6) dof index of each joint slot, -1 where the slot is not a dof.
+        jnt_kinds: 5 bools, which angular modes occur; jnt_has_slides: whether any slide occurs (static structure
+        that lets the step skip work for joint kinds the model lacks).
+    Dofs (hinge and slide dofs of constrained joints):
+        dof_flat: (D,) index into a joint's 6 coordinate slots (3 slides, then 3 hinges), flattened as j*6+slot.
+        dof_is_hinge: (D,) bool.  dof_qpos, dof_qvel: (D,) addresses in qpos/qvel.
+        dof_limited: (D,) bool.  dof_range: (D, 2).  dof_ref: (D,) MuJoCo qpos0 (the coordinate of the zero frame).
+        dof_damping, dof_armature, dof_stiffness, dof_springref: (D,), batchable.
+        ball_joint, ball_qpos, ball_qvel: (nball,) ball joints and their addresses.
+        free_body, free_qpos, free_qvel: (nfree,) free-floating bodies and their addresses.
+    Actuators (MuJoCo ``gaintype=fixed``, ``biastype=none|affine``, joint transmission):
+        act_dof: (U,) dof index.  act_gear, act_gain: (U,), batchable.  act_bias: (U, 3).
+        act_ctrl_range, act_force_range: (U, 2); act_ctrl_limited, act_force_limited: (U,) bool.
+    Geometry and contacts:
+        geom_body: (G,) ext body index.  geom_pos, geom_quat: (G, 3), (G, 4) from the body COM in the body frame
+        (world frame for static geoms).  geom_size: (G, 3) MuJoCo sizes.  contact_groups: one per shape pair.
+    MuJoCo bodies (for poses of fused bodies, e.g. rendering): mjbody_body (nbody,) ext index;
+        mjbody_pos, mjbody_quat: frame offset of each MuJoCo body in its fused body's frame.
+    """
+
+    # sizes and options
+    nq: int
+    nv: int
+    nu: int
+    timestep: float
+    substeps: int
+    method: str
+    gravity: torch.Tensor
+    q0: torch.Tensor
+    # solver parameters (see ``torchsim.io_mjcf.load_mjcf`` for their meaning and defaults)
+    joint_stiffness: float
+    joint_damping: float
+    contact_erp: float
+    joint_sweeps: int
+    max_speed: float
+    max_distance: float
+    # bodies
+    body_mass: torch.Tensor
+    body_inertia: torch.Tensor
+    body_ipos: torch.Tensor
+    body_parent: torch.Tensor
+    body_names: tuple
+    # joints
+    jnt_child: torch.Tensor
+    jnt_parent: torch.Tensor
+    jnt_anchor_child: torch.Tensor
+    jnt_anchor_parent: torch.Tensor
+    jnt_quat0: torch.Tensor
+    jnt_axes: torch.Tensor
+    jnt_mode: torch.Tensor
+    jnt_a2_sign: torch.Tensor
+    jnt_slide_axes: torch.Tensor
+    jnt_slide_pinv: torch.Tensor
+    jnt_lin_proj: torch.Tensor
+    jnt_colors: tuple
+    jnt_levels: tuple
+    jnt_slot_dof: torch.Tensor
+    jnt_kinds: tuple
+    jnt_has_slides: bool
+    # dofs
+    dof_flat: torch.Tensor
+    dof_is_hinge: torch.Tensor
+    dof_qpos: torch.Tensor
+    dof_qvel: torch.Tensor
+    dof_limited: torch.Tensor
+    dof_range: torch.Tensor
+    dof_damping: torch.Tensor
+    dof_armature: torch.Tensor
+    dof_stiffness: torch.Tensor
+    dof_springref: torch.Tensor
+    dof_ref: torch.Tensor
+    ball_joint: torch.Tensor
+    ball_qpos: torch.Tensor
+    ball_qvel: torch.Tensor
+    free_body: torch.Tensor
+    free_qpos: torch.Tensor
+    free_qvel: torch.Tensor
+    # actuators
+    act_dof: torch.Tensor
+    act_gear: torch.Tensor
+    act_gain: torch.Tensor
+    act_bias: torch.Tensor
+    act_ctrl_range: torch.Tensor
+    act_ctrl_limited: torch.Tensor
+    act_force_range: torch.Tensor
+    act_force_limited: torch.Tensor
+    # geometry
+    geom_body: torch.Tensor
+    geom_pos: torch.Tensor
+    geom_quat: torch.Tensor
+    geom_size: torch.Tensor
+    contact_groups: tuple
+    # MuJoCo body frames
+    mjbody_body: torch.Tensor
+    mjbody_pos: torch.Tensor
+    mjbody_quat: torch.Tensor
+
+    @property
+    def num_bodies(self) -> int:
+        return self.body_ipos.shape[0]
+
+    @property
+    def num_contacts(self) -> int:
+        """Contact points evaluated per env and substep (a box-plane pair counts its 8 corners)."""
+        from torchsim.collision import POINTS_PER_PAIR
+
+        return sum(POINTS_PER_PAIR[g.kind] * g.geom_a.shape[0] for g in self.contact_groups)
+
+    @property
+    def num_contact_pairs(self) -> int:
+        return sum(g.geom_a.shape[0] for g in self.contact_groups)
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.body_ipos.dtype
+
+    @property
+    def device(self) -> torch.device:
+        return self.body_ipos.device
+
+    def to(self, device=None, dtype=None) -> "System":
+        """Copy to ``device`` and/or floating ``dtype`` (integer and bool index tensors keep their dtype)."""
+
+        def move(x):
+            if isinstance(x, torch.Tensor):
+                return x.to(device=device, dtype=dtype if x.is_floating_point() else None)
+            if isinstance(x, ContactGroup):
+                return ContactGroup(x.kind, *(move(t) for t in x[1:]))
+            if isinstance(x, tuple):
+                return tuple(move(t) for t in x)
+            return x
+
+        return dataclasses.replace(self, **{f.name: move(getattr(self, f.name)) for f in dataclasses.fields(self)})
+
+    def replace(self, **changes) -> "System":
+        """A copy with some fields replaced, e.g. ``sys.replace(body_mass=mass_per_env)`` for randomisation."""
+        return dataclasses.replace(self, **changes)
