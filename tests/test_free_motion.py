@@ -44,9 +44,13 @@ def test_projectile(method):
     assert torch.allclose(state.qd[:, :3], state.xd_vel[:, 0], atol=1e-12)
 
 
-# The brief asks for 10 s (10,000 steps at 1 ms); eagerly that is ~110 s (xpbd) + ~230 s (spring) of CPU, more
-# than the whole suite's budget. The drifts are secular (linear in time, see the report), so the default runs
-# SPIN_SECONDS = 2 s with the 10 s tolerances scaled by T / 10 s; TORCHSIM_SPIN_SECONDS=10 runs the full test.
+# The brief asks for 10 s (10,000 steps at 1 ms): eagerly ~70 s (xpbd) + ~200 s (spring) of CPU, most of the
+# suite's budget. The |L| and energy drifts are secular (linear in time: measured 1.14e-3 and 9.9e-4 at 10 s vs
+# 2.26e-4 and 1.9e-4 at 2 s for xpbd), so the default runs 2 s with those 10 s tolerances scaled by T / 10 s.
+# The direction error is partly a bounded O(h |w|) wobble that peaks within the first nutation period (2.7 s for
+# the minor-axis spin: xpbd 1.10e-3 at 2 s vs 1.11e-3 at 10 s), so its 1e-3 is NOT scaled; the short run then
+# misses a slow secular part (xpbd major-axis spin: 1.9e-4 at 2 s, 1.13e-3 at 10 s), which only the full run sees.
+# TORCHSIM_SPIN_SECONDS=10 runs the brief's full 10 s.
 SPIN_SECONDS = float(os.environ.get("TORCHSIM_SPIN_SECONDS", "2"))
 
 
@@ -95,8 +99,8 @@ def test_torque_free_spin(method):
     assert not state.diverged.any()
     print(f"{method} h={sys.timestep / sys.substeps:g} T={SPIN_SECONDS:g}s per spin [major, minor, major-]: "
           f"|L| drift {worst[0].tolist()}, energy drift {worst[1].tolist()}, direction drift {worst[2].tolist()}")
-    # Brief's 10 s tolerances (|L| 0.1 %, energy 1 %, L direction 1e-3) scaled linearly to T (secular drift).
+    # Brief's 10 s tolerances: |L| 0.1 % and energy 1 % (scaled by T / 10 s, secular drift), L direction 1e-3.
     scale = SPIN_SECONDS / 10.0
     assert worst[0].max() < 1e-3 * scale, f"|L| relative drift {worst[0].tolist()}"
     assert worst[1].max() < 1e-2 * scale, f"energy relative drift {worst[1].tolist()}"
-    assert worst[2].max() < 1e-3 * scale, f"L direction drift {worst[2].tolist()}"
+    assert worst[2].max() < 1e-3, f"L direction drift {worst[2].tolist()}"

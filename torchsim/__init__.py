@@ -5,6 +5,7 @@
     state = torchsim.step(sys, state, ctrl)              # ctrl: (B, nu); advances sys.timestep
 """
 
+from torchsim import kinematics
 from torchsim.io_mjcf import UnsupportedMJCFError, load_mjcf
 from torchsim.kinematics import mj_body_poses
 from torchsim.pipeline import init, step

@@ -48,7 +48,7 @@ def load_mjcf(
     device="cpu",
     joint_stiffness: float = 0.1,
     joint_damping: float = 0.5,
-    contact_erp: float = 0.2,
+    contact_timeconst: float = 0.02,
     joint_sweeps: int = 1,
     max_speed: float = 1e3,
     max_distance: float = 1e4,
@@ -64,7 +64,10 @@ def load_mjcf(
         joint_stiffness: spring method only: joint spring stiffness as a fraction of the explicit stability limit
             (k = stiffness * m_eff / h^2).
         joint_damping: spring method only: joint damping as a fraction of h-critical damping (c = damping * m_eff / h).
-        contact_erp: spring method only: fraction of contact penetration removed per substep (Baumgarte).
+        contact_timeconst: time constant [s] with which penetration is removed (MuJoCo's default ``solref``
+            time constant, 0.02 s): the spring method adds a separating speed ``depth / timeconst`` (Baumgarte),
+            XPBD removes ``h / timeconst`` of the depth per substep. Removing all of it at once would launch bodies
+            that start interpenetrating.
         joint_sweeps: forward-and-back Gauss-Seidel sweeps over the joint colours for armature and damping.
         max_speed, max_distance: an env whose body speed [m/s] or distance from the origin [m] exceeds these is
             flagged as diverged.
@@ -83,7 +86,7 @@ def load_mjcf(
     sys = System(
         nq=m.nq, nv=m.nv, nu=m.nu, timestep=float(m.opt.timestep), substeps=int(substeps), method=method,
         gravity=torch.as_tensor(gravity), q0=torch.as_tensor(m.qpos0.copy()),
-        joint_stiffness=joint_stiffness, joint_damping=joint_damping, contact_erp=contact_erp, joint_sweeps=joint_sweeps,
+        joint_stiffness=joint_stiffness, joint_damping=joint_damping, contact_timeconst=contact_timeconst, joint_sweeps=joint_sweeps,
         max_speed=max_speed, max_distance=max_distance, **fields,
     )
     return sys.to(device=device, dtype=dtype)

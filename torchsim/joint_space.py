@@ -1,14 +1,10 @@
 """Joint-space terms that MuJoCo keeps in its mass matrix and integrator: armature and joint damping.
 
 In maximal coordinates a dof's armature ``J`` acts like a rotor coupled to the dof's rate: it adds ``J`` to the
-inertia every impulse on that dof meets. Each joint's hinge dofs are handled together in the joint's hinge-slot
-coordinates (``G = A^-1`` maps a relative rotation onto the slot axes ``A``); joints of one colour run in
-parallel and colours in sequence, because dofs of neighbouring joints share a body.
-
-For a slot with armature ``J``, damping ``c`` and rates ``qd_raw`` before, ``qd_ref`` the rotor's rate, the
-impulse ``mu`` solves ``(G K G^T + diag(1 / (J + h c))) mu = J qd_ref / (J + h c) - qd_raw`` (``K``: relative
-inverse inertia of the joint's bodies): implicit damping, as in MuJoCo's Euler integrator, on a dof whose
-inertia includes the armature.
+inertia every impulse on that dof meets. For dofs with armature ``J``, damping ``c``, rates ``qd_raw`` and rotor
+rates ``qd_ref``, the dof impulses ``mu`` solve ``(A + diag(1 / (J + h c))) mu = J qd_ref / (J + h c) - qd_raw``
+(``A``: the dofs' inverse inertia through the bodies): implicit damping, as in MuJoCo's Euler integrator, on dofs
+whose inertia includes the armature.
 """
 
 import torch
@@ -18,49 +14,40 @@ from torchsim.kinematics import Bodies, JointFrames, dof_values
 from torchsim.system import System
 
 
-def hinge_slots(sys: System, values: torch.Tensor, joints: torch.Tensor | None = None) -> torch.Tensor:
-    """Scatter per-dof ``values (..., D)`` onto hinge slots ``(..., J, 3)`` (zero where a slot is no dof)."""
-    slot_dof = sys.jnt_slot_dof[:, 3:] if joints is None else sys.jnt_slot_dof[joints, 3:]
-    return torch.where(slot_dof >= 0, values[..., slot_dof.clamp_min(0)], 0.0)
-
-
-def dofs_from_slots(sys: System, slots: torch.Tensor) -> torch.Tensor:
-    """Gather ``(B, J, 3)`` hinge-slot values back to ``(B, D)`` (slides read 0)."""
-    flat = torch.cat((torch.zeros_like(slots), slots), -1).flatten(1)
-    return flat[:, sys.dof_flat]
-
-
-def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, axes: torch.Tensor,
+def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, frames: JointFrames,
                      qd_ref: torch.Tensor, damping_h: torch.Tensor):
-    """Armature (rotor at rate ``qd_ref (B, J, 3)``) and implicit damping ``damping_h = h c (..., J, 3)`` on every
-    joint's hinge slots; ``axes (B, J, 3, 3)`` are the slot axes (rows). Colours are swept forwards and back
-    ``sys.joint_sweeps`` times (Gauss-Seidel), accumulating each slot's impulse ``lam`` so the rotor's rate stays
-    ``(J qd_ref - lam) / (J + h c)``. Returns bodies and slot rates (B, J, 3)."""
-    armature = hinge_slots(sys, sys.dof_armature)
-    inertia = armature + damping_h
-    include = inertia > 0
-    compliance = torch.where(include, 1.0 / inertia.clamp_min(1e-30), 0.0)
-    g = math.inv3(axes.transpose(-1, -2))
-    lam = torch.zeros_like(qd_ref)
-    order = list(sys.jnt_colors) + list(sys.jnt_colors[::-1])
-    for colour in order * sys.joint_sweeps:
-        child, parent = sys.jnt_child[colour], sys.jnt_parent[colour]
-        g_c = g[:, colour]
-        _, i_c = rigid.gather(inv, child)
-        _, i_p = rigid.gather(inv, parent)
-        k_ss = g_c @ (i_c + i_p) @ g_c.transpose(-1, -2)
-        qd_raw = math.matvec(g_c, bodies.xd_ang[:, child] - bodies.xd_ang[:, parent])
-        mask = include[..., colour, :].to(qd_raw.dtype)
-        c = compliance[..., colour, :]
-        rhs = mask * (c * (armature[..., colour, :] * qd_ref[:, colour] - lam[:, colour]) - qd_raw)
-        mat = mask[..., :, None] * (k_ss + torch.diag_embed(c)) * mask[..., None, :] + torch.diag_embed(1.0 - mask)
-        mu = math.matvec(math.inv3(mat), rhs)
-        lam = lam.index_add(1, colour, mu)
-        p_ang = math.matvec(g_c.transpose(-1, -2), mu)
-        zero = torch.zeros_like(p_ang)
-        bodies = rigid.apply_pair_velocity(bodies, inv, child, parent, zero, zero, zero, p_ang)
-    rates = math.matvec(g, bodies.xd_ang[:, sys.jnt_child] - bodies.xd_ang[:, sys.jnt_parent])
-    return bodies, rates
+    """Armature (a rotor per hinge dof turning at ``qd_ref (B, D)``) and implicit damping ``damping_h = h c (..., D)``
+    on all hinge dofs at once: one dense ``D x D`` solve per env.
+
+    Dof ``i`` turns its child against its parent about ``u_i``, the row of ``G = A^-1`` for its slot (its axis for
+    a single hinge), so ``A_ij = sum_b s_ib s_jb u_i^T I_b^-1 u_j`` (``s = +1`` child, ``-1`` parent) is the dofs'
+    inverse inertia through the bodies; dofs sharing a body (the ant's four hips on the torso) are coupled
+    exactly, as in MuJoCo's joint-space mass matrix. Returns bodies and every dof's rate ``(B, D)`` (slides 0).
+    """
+    joint = sys.dof_flat // 6
+    slot = (sys.dof_flat % 6 - 3).clamp_min(0)
+    child, parent = sys.jnt_child[joint], sys.jnt_parent[joint]
+    g = math.inv3(frames.axes[..., 3:, :].transpose(-1, -2))  # (B, J, 3, 3): row k maps a rotation to slot k
+    hinge = sys.dof_is_hinge
+    u = torch.where(hinge[:, None], g[:, joint, slot], 0.0)  # (B, D, 3)
+    n_ext, n_dof = bodies.x_pos.shape[1], u.shape[1]
+    dof_index = torch.arange(n_dof, device=u.device)
+    v = u.new_zeros(u.shape[0], n_ext * n_dof, 3)
+    v = v.index_add(1, child * n_dof + dof_index, u).index_add(1, parent * n_dof + dof_index, -u)
+    v = v.view(u.shape[0], n_ext, n_dof, 3)
+    w = inv.inertia @ v.transpose(-1, -2)  # (B, N + 1, 3, D)
+    a = torch.einsum("bndx,bnxe->bde", v, w)
+    armature = torch.where(hinge, sys.dof_armature, 0.0)
+    inertia = armature + torch.where(hinge, damping_h, 0.0)
+    mask = (inertia > 0).to(u.dtype)
+    compliance = mask / inertia.clamp_min(1e-30)
+    qd_raw = (u * (bodies.xd_ang[:, child] - bodies.xd_ang[:, parent])).sum(-1)
+    rhs = mask * (compliance * armature * qd_ref - qd_raw)
+    mat = mask[..., :, None] * a * mask[..., None, :] + torch.diag_embed(compliance + 1.0 - mask).expand_as(a)
+    mu = torch.linalg.solve(mat, rhs)
+    impulse = torch.einsum("bndx,bd->bnx", v, mu)
+    bodies = bodies._replace(xd_ang=bodies.xd_ang + math.matvec(inv.inertia, impulse))
+    return bodies, qd_raw + (a @ mu.unsqueeze(-1)).squeeze(-1)
 
 
 def slide_inertia_and_damping(sys: System, before: Bodies, after: Bodies, axes: torch.Tensor, qd: torch.Tensor,
@@ -87,10 +74,28 @@ def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: Join
     """Armature and implicit damping on one substep's force-driven velocity change, for all dofs; ``frames``
     measured at the substep start. Returns bodies and dof rates ``(B, D)``."""
     qd = dof_values(sys, frames.qd)
-    after, slot_rates = hinge_rate_solve(sys, after, inv, frames.axes[..., 3:, :], frames.qd[..., 3:],
-                                         h * hinge_slots(sys, sys.dof_damping))
-    rates = dofs_from_slots(sys, slot_rates)
+    after, rates = hinge_rate_solve(sys, after, inv, frames, qd, h * sys.dof_damping)
     if sys.jnt_has_slides:
         after, qd_slides = slide_inertia_and_damping(sys, before, after, dof_values(sys, frames.axes), qd, inv, h)
         rates = torch.where(sys.dof_is_hinge, rates, qd_slides)
     return after, rates
+
+
+def armature_loaded_inertia(sys: System, bodies: Bodies, inv: rigid.InverseInertia,
+                            axes: torch.Tensor) -> rigid.InverseInertia:
+    """Inverse inertias in which each child body also carries its hinges' armature ``J a a^T`` (world frame).
+
+    Contacts use these: an impulse on a light link whose hinge has a heavy armature turns it about the hinge as
+    if the rotor were attached. The rotor is relative to the parent, this is relative to the world: exact while
+    the parent does not turn about the hinge axis, and in any case it only shapes how a contact impulse divides
+    between rotation and translation.
+    """
+    n = sys.num_bodies
+    rot = math.quat_to_mat(bodies.x_quat[:, :n])
+    inertia = rot @ sys.body_inertia @ rot.transpose(-1, -2)
+    child, _ = rigid.dof_bodies(sys)
+    hinge_armature = torch.where(sys.dof_is_hinge, sys.dof_armature, 0.0)
+    loads = hinge_armature[..., None, None] * (axes[..., :, None] * axes[..., None, :])
+    inertia = inertia.index_add(1, child, loads)
+    inv_world = torch.cat((math.inv3(inertia), torch.zeros_like(inv.inertia[:, :1])), 1)
+    return rigid.InverseInertia(inv.mass, inv_world)

@@ -78,7 +78,7 @@ class System:
     # solver parameters (see ``torchsim.io_mjcf.load_mjcf`` for their meaning and defaults)
     joint_stiffness: float
     joint_damping: float
-    contact_erp: float
+    contact_timeconst: float
     joint_sweeps: int
     max_speed: float
     max_distance: float

@@ -3,7 +3,7 @@
 Spring stiffness is set per joint from the effective mass it acts on and the substep, ``k = kappa m / h^2``
 (``kappa = System.joint_stiffness``, a fraction of the explicit stability limit), so light links get soft
 springs and heavy ones stiff springs, and the joint error scales as ``h^2``. Contacts take Brax's impulse form:
-a normal impulse removing approaching velocity plus a Baumgarte term ``erp * depth / h``, Coulomb-capped
+a normal impulse removing approaching velocity plus a Baumgarte term ``depth / timeconst``, Coulomb-capped
 friction, impulses averaged over a body's active contacts.
 """
 
@@ -21,21 +21,32 @@ def _gains(sys: System, inv_mass: torch.Tensor, h: float):
     return sys.joint_stiffness / (h * h * inv_mass), sys.joint_damping / (h * inv_mass)
 
 
+def _subspace_inverse(k: torch.Tensor, proj: torch.Tensor) -> torch.Tensor:
+    """``(P K P)^+`` restricted to the subspace of projector ``P`` (identity added on its complement)."""
+    eye = torch.eye(3, dtype=k.dtype, device=k.device)
+    return proj @ math.inv3(proj @ k @ proj + (eye - proj)) @ proj
+
+
 def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.InverseInertia, h: float):
-    """Ext-indexed ``(force, torque)`` of every joint's anchor spring and alignment spring."""
+    """Ext-indexed ``(force, torque)`` of every joint's anchor spring and alignment spring.
+
+    Gains are matrices, ``kappa / h^2 K^-1`` and ``zeta / h K^-1`` with ``K`` the joint's inverse-inertia block in
+    its constrained directions: every direction is corrected by the same fraction per substep, so thin links
+    (a capsule's small inertia about its axis) stay inside the explicit stability limit.
+    """
     child, parent = sys.jnt_child, sys.jnt_parent
     m_c, i_c = rigid.gather(inv, child)
     m_p, i_p = rigid.gather(inv, parent)
     s_c, s_p = math.skew(fr.r_child), math.skew(fr.r_parent)
-    w_lin = (m_c + m_p)[..., 0] - torch.diagonal(s_c @ i_c @ s_c + s_p @ i_p @ s_p, dim1=-2, dim2=-1).sum(-1) / 3
-    w_ang = torch.diagonal(i_c + i_p, dim1=-2, dim2=-1).sum(-1) / 3
-    k_lin, c_lin = _gains(sys, w_lin[..., None], h)
-    k_ang, c_ang = _gains(sys, w_ang[..., None], h)
+    eye = torch.eye(3, dtype=m_c.dtype, device=m_c.device)
+    gain_lin = _subspace_inverse((m_c + m_p)[..., None] * eye - s_c @ i_c @ s_c - s_p @ i_p @ s_p, fr.lin_proj)
+    gain_ang = _subspace_inverse(i_c + i_p, fr.ang_proj)
     v_anchor = (bodies.xd_vel[:, child] + math.cross(bodies.xd_ang[:, child], fr.r_child)
                 - bodies.xd_vel[:, parent] - math.cross(bodies.xd_ang[:, parent], fr.r_parent))
     w_rel = bodies.xd_ang[:, child] - bodies.xd_ang[:, parent]
-    force = -k_lin * fr.lin_err - c_lin * math.matvec(fr.lin_proj, v_anchor)
-    torque = -k_ang * fr.ang_err - c_ang * math.matvec(fr.ang_proj, w_rel)
+    kappa, zeta = sys.joint_stiffness / (h * h), sys.joint_damping / h
+    force = -math.matvec(gain_lin, kappa * fr.lin_err + zeta * v_anchor)
+    torque = -math.matvec(gain_ang, kappa * fr.ang_err + zeta * w_rel)
     zero = torch.zeros_like(bodies.x_pos)
     return (rigid.scatter_pair(zero, child, parent, force, -force),
             rigid.scatter_pair(zero, child, parent, math.cross(fr.r_child, force) + torque,
@@ -51,7 +62,7 @@ def limit_forces(sys: System, q: torch.Tensor, qd: torch.Tensor, w: torch.Tensor
 
 
 def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: float) -> Bodies:
-    """Velocity impulses stopping approach and removing ``contact_erp`` of the penetration per substep."""
+    """Velocity impulses stopping approach and separating at ``depth / contact_timeconst``, Coulomb-capped friction."""
     con = contacts(sys, bodies)
     a, b = con.body_a, con.body_b
     r_a = con.pos - bodies.x_pos[:, a]
@@ -61,7 +72,7 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: 
     v_n = math.dot(v_rel, con.normal)
     active = (con.depth > 0).to(con.depth.dtype)
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
-    j_n = active * torch.relu(-v_n[..., 0] + sys.contact_erp * con.depth / h) / w_n
+    j_n = active * torch.relu(-v_n[..., 0] + con.depth / sys.contact_timeconst) / w_n
     v_t = v_rel - v_n * con.normal
     speed_t = math.safe_norm(v_t)
     tangent = v_t / speed_t
@@ -74,8 +85,8 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: 
 
 
 def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: torch.Tensor, h: float) -> Bodies:
-    """Forces (actuators, limits, joint springs) -> velocities (armature, damping) -> contact impulses (with the
-    armature's share) -> positions."""
+    """Forces (actuators, limits, joint springs) -> velocities (armature, damping) -> contact impulses (on
+    armature-loaded links) -> positions."""
     inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
     fr = joint_frames(sys, bodies)
     axes = dof_values(sys, fr.axes)
@@ -86,20 +97,5 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     after = integrator.velocity_update(sys, bodies, inv, inv_inertia_body, force + spring_force, torque + spring_torque, h)
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
     if sys.contact_groups:
-        after = _contacts_with_armature(sys, after, fr, inv, h)
+        after = contact_impulses(sys, after, joint_space.armature_loaded_inertia(sys, after, inv, axes), h)
     return integrator.integrate_positions(after, h)
-
-
-def _contacts_with_armature(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.InverseInertia, h: float):
-    """Contact impulses, then the armature's share of their effect on the dofs."""
-    touched = contact_impulses(sys, bodies, inv, h)
-    slot_axes = fr.axes[..., 3:, :]
-    ref = math.matvec(math.inv3(slot_axes.transpose(-1, -2)),
-                      bodies.xd_ang[:, sys.jnt_child] - bodies.xd_ang[:, sys.jnt_parent])
-    touched, _ = joint_space.hinge_rate_solve(sys, touched, inv, slot_axes, ref, torch.zeros_like(ref))
-    if sys.jnt_has_slides:
-        axes = dof_values(sys, fr.axes)
-        deviation = torch.where(sys.dof_is_hinge, 0.0, rigid.dof_rate_change(sys, axes, bodies, touched))
-        touched = rigid.apply_dof_impulse(sys, touched, inv, axes, joint_space.armature_impulse(sys, inv, axes, deviation),
-                                          position=False)
-    return touched

@@ -48,7 +48,7 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pre
         q = fr.q[..., 3:] + torch.where(has_dof, sys.dof_ref[dof], 0.0)
         lo, hi = sys.dof_range[dof].unbind(-1)
         violation = torch.where(has_dof & sys.dof_limited[dof], torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0), 0.0)
-        armature = torch.where(has_dof, sys.dof_armature[..., dof], 0.0)
+        armature = torch.zeros_like(q)  # armature acts at velocity level (joint_space), after the projection
         mode = sys.jnt_mode[colour]
         hard = (mode[:, :3] @ torch.tensor([[1.0, 1, 1], [0, 1, 1], [0, 0, 1]], dtype=mode.dtype, device=mode.device)) > 0
         stop = hard | (violation != 0)
@@ -92,8 +92,9 @@ def correct_slides(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pre
     return rigid.apply_dof_impulse(sys, bodies, inv, axes, impulse - violation / w, position=True)
 
 
-def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.InverseInertia):
-    """Resolve penetration along the normal, then undo tangential slip within the Coulomb cone.
+def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.InverseInertia, h: float):
+    """Remove ``h / contact_timeconst`` of the penetration along the normal, then undo tangential slip within the
+    Coulomb cone.
 
     Returns the corrected bodies, the contacts, their activity and their averaging weights (velocity pass).
     """
@@ -105,7 +106,7 @@ def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.I
     scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[1])
     scale_a, scale_b = scale_a[..., None], scale_b[..., None]
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
-    lam_n = active * con.depth / w_n
+    lam_n = active * con.depth * min(1.0, h / sys.contact_timeconst) / w_n
     # where the contact point was at the start of the substep, on each body
     prev_a = previous.x_pos[:, a] + math.quat_rotate(previous.x_quat[:, a], math.quat_rotate_inv(bodies.x_quat[:, a], r_a))
     prev_b = previous.x_pos[:, b] + math.quat_rotate(previous.x_quat[:, b], math.quat_rotate_inv(bodies.x_quat[:, b], r_b))
@@ -146,10 +147,13 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     q_pred = q + h * qd_pred
     moved = integrator.integrate_positions(after, h)
     inv = rigid.inverse_inertia(sys, moved.x_quat, inv_inertia_body)
-    moved, con, active, scale_a, scale_b = project_contacts(sys, moved, bodies, inv)
-    moved = project_joints(sys, moved, inv, q_pred)
+    for _ in range(sys.joint_sweeps):
+        moved, con, active, scale_a, scale_b = project_contacts(sys, moved, bodies, inv, h)
+        moved = project_joints(sys, moved, inv, q_pred)
     if sys.jnt_has_slides:
         moved = correct_slides(sys, moved, inv, q_pred)
     xd_vel = (moved.x_pos - bodies.x_pos) / h
     xd_ang = math.quat_to_rot_vec(math.quat_mul(moved.x_quat, math.quat_conj(bodies.x_quat))) / h
-    return stop_contacts(moved._replace(xd_vel=xd_vel, xd_ang=xd_ang), inv, con, active, scale_a, scale_b)
+    moved = stop_contacts(moved._replace(xd_vel=xd_vel, xd_ang=xd_ang), inv, con, active, scale_a, scale_b)
+    moved, _ = joint_space.hinge_rate_solve(sys, moved, inv, fr, qd_pred, torch.zeros_like(qd_pred))
+    return moved

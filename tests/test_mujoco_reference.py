@@ -1,0 +1,150 @@
+"""Physics against MuJoCo on the same MJCF and against closed forms: pendulum period, triple-pendulum trajectory,
+a box resting and sliding on a plane, and the ant standing under gravity (issue 2, items 2, 4, 6, 7 and 10)."""
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+import torchsim
+from models import ANT, F64, METHODS
+
+PENDULUM = """
+<mujoco><option timestep="0.001"/><worldbody>
+  <body pos="0 0 1"><joint type="hinge" axis="0 1 0"/>
+    <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.02"/><geom type="sphere" pos="0 0 -0.5" size="0.05"/>
+  </body></worldbody></mujoco>"""
+
+TRIPLE = """
+<mujoco><option timestep="0.001"/><worldbody>
+  <body pos="0 0 1"><joint type="hinge" axis="0 1 0"/><geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/>
+    <body pos="0 0 -0.5"><joint type="hinge" axis="0 1 0"/><geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/>
+      <body pos="0 0 -0.5"><joint type="hinge" axis="1 0 0"/><geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.05"/>
+      </body></body></body></worldbody></mujoco>"""
+
+BOX = """
+<mujoco><option timestep="0.002"/><worldbody><geom type="plane" size="10 10 1" friction="{mu}"/>
+  <body pos="0 0 {z}"><freejoint/><geom type="box" size="0.2 0.2 0.05" friction="{mu}" mass="1"/></body>
+</worldbody></mujoco>"""
+
+
+def _zero_ctrl(sys, batch=1):
+    return torch.zeros(batch, sys.nu, dtype=F64)
+
+
+def _period(angles: np.ndarray, dt: float) -> float:
+    """Mean period from linearly interpolated zero crossings."""
+    idx = np.where(np.diff(np.sign(angles)) != 0)[0]
+    crossings = (idx + angles[idx] / (angles[idx] - angles[idx + 1])) * dt
+    return 2.0 * float(np.mean(np.diff(crossings)))
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_pendulum_period_matches_mujoco(method):
+    """Item 2: period within 0.5% of MuJoCo's at timestep 1 ms, from 1 rad (a non-linear swing)."""
+    m = mujoco.MjModel.from_xml_string(PENDULUM)
+    d = mujoco.MjData(m)
+    d.qpos[0] = 1.0
+    steps = 1800  # > 1 period (1.42 s): three zero crossings
+    ref = []
+    for _ in range(steps):
+        mujoco.mj_step(m, d)
+        ref.append(d.qpos[0])
+    sys = torchsim.load_mjcf(PENDULUM, method=method, dtype=F64)
+    state = torchsim.init(sys, torch.tensor([[1.0]], dtype=F64), torch.zeros(1, 1, dtype=F64))
+    ours = []
+    for _ in range(steps):
+        state = torchsim.step(sys, state, _zero_ctrl(sys))
+        ours.append(state.q[0, 0].item())
+    rel = _period(np.array(ours), m.opt.timestep) / _period(np.array(ref), m.opt.timestep) - 1
+    print(f"{method}: period error vs MuJoCo {rel:+.2e}")
+    assert abs(rel) < 5e-3
+
+
+# Measured max |q - q_mujoco| over 1 s: xpbd 0.025 rad (1 substep of 1 ms: XPBD's first-order projection damps
+# and shortens the swing), spring 0.0052 rad (4 substeps). For scale, MuJoCo at 1 ms vs MuJoCo at 0.1 ms differs
+# by 0.0031 rad on this chain: spring is within 2x the reference's own discretisation error, xpbd within 8x.
+TRIPLE_BOUND = {"xpbd": 0.03, "spring": 0.01}
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_triple_pendulum_follows_mujoco(method):
+    """Item 6: a triple pendulum (two pitch hinges, one roll hinge: 3-D motion) tracks MuJoCo's q over 1 s, and
+    joint anchors stay together (< 1 mm)."""
+    m = mujoco.MjModel.from_xml_string(TRIPLE)
+    d = mujoco.MjData(m)
+    q0 = np.array([0.8, -0.4, 0.6])
+    d.qpos[:] = q0
+    sys = torchsim.load_mjcf(TRIPLE, method=method, dtype=F64)
+    state = torchsim.init(sys, torch.tensor(q0)[None], torch.zeros(1, 3, dtype=F64))
+    err, gap = 0.0, 0.0
+    for _ in range(1000):
+        state = torchsim.step(sys, state, _zero_ctrl(sys))
+        mujoco.mj_step(m, d)
+        err = max(err, float(np.abs(state.q[0].numpy() - d.qpos).max()))
+        frames = torchsim.kinematics.joint_frames(
+            sys, torchsim.kinematics.with_world(state.x_pos, state.x_quat, state.xd_vel, state.xd_ang))
+        gap = max(gap, float(frames.lin_err.norm(dim=-1).max()))
+    print(f"{method}: max |q - q_mujoco| {err:.2e} rad, max anchor gap {gap:.2e} m")
+    assert err < TRIPLE_BOUND[method]
+    assert gap < 1e-3
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_box_comes_to_rest_at_its_height(method):
+    """Item 4a: a box (half height 5 cm) dropped from 45 cm above its resting height rests at z = 0.05 within 2 mm,
+    with speed < 1e-3 m/s after 2 s."""
+    sys = torchsim.load_mjcf(BOX.format(mu=0.5, z=0.5), method=method, dtype=F64)
+    state = torchsim.init(sys, sys.q0[None].clone(), torch.zeros(1, 6, dtype=F64))
+    for _ in range(1000):
+        state = torchsim.step(sys, state, _zero_ctrl(sys))
+    print(f"{method}: rest height {state.x_pos[0, 0, 2].item():.5f}, speed {state.xd_vel.norm().item():.1e}")
+    assert abs(state.x_pos[0, 0, 2].item() - 0.05) < 2e-3
+    assert state.xd_vel.norm().item() < 1e-3 and state.xd_ang.norm().item() < 1e-3
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_sliding_box_stops_at_coulomb_distance(method):
+    """Item 4b: a box sliding at v0 = 2 m/s with mu = 0.5 stops within 5% of v0^2 / (2 mu g)."""
+    v0, mu, g = 2.0, 0.5, 9.81
+    sys = torchsim.load_mjcf(BOX.format(mu=mu, z=0.05), method=method, dtype=F64)
+    qd = torch.zeros(1, 6, dtype=F64)
+    qd[0, 0] = v0
+    state = torchsim.init(sys, sys.q0[None].clone(), qd)
+    for _ in range(400):  # 0.8 s > stopping time v0 / (mu g) = 0.41 s
+        state = torchsim.step(sys, state, _zero_ctrl(sys))
+    expected = v0**2 / (2 * mu * g)
+    travel = state.x_pos[0, 0, 0].item()
+    print(f"{method}: slid {travel:.4f} m, Coulomb {expected:.4f} m")
+    assert abs(travel / expected - 1) < 0.05
+    assert abs(state.xd_vel[0, 0, 0].item()) < 1e-3
+
+
+# Measured torso-height difference to MuJoCo after 2 s (home pose, zero control, MuJoCo 4.0 at 10 ms):
+# spring -5.3 mm, xpbd -186 mm. Both fold the ankles faster than MuJoCo: constraint impulses (contacts in both
+# methods, joint projections in XPBD) reach a dof through the bare link inertias and only afterwards get the
+# armature's share (joint_space), one Gauss-Seidel pass per substep; with armature 1 kg m^2 on 0.04 kg links the
+# pass does not converge. Issue 2 item 7 is open for both methods.
+ANT_SETTLE_MM = 3.0
+
+
+@pytest.mark.parametrize("method", [
+    pytest.param("spring", marks=pytest.mark.xfail(strict=True, reason="settles 5.3 mm below MuJoCo (see above)")),
+    pytest.param("xpbd", marks=pytest.mark.xfail(strict=True, reason="ankles fold to their limits (see above)")),
+])
+def test_ant_settles_at_mujoco_height(method):
+    """Item 7: the ant standing from its home pose with zero control is within 3 mm of MuJoCo's torso height
+    after 2 s."""
+    m = mujoco.MjModel.from_xml_path(str(ANT))
+    d = mujoco.MjData(m)
+    mujoco.mj_resetDataKeyframe(m, d, 0)
+    home = d.qpos.copy()
+    for _ in range(200):
+        mujoco.mj_step(m, d)
+    sys = torchsim.load_mjcf(str(ANT), method=method, dtype=F64)
+    state = torchsim.init(sys, torch.tensor(home)[None], torch.zeros(1, sys.nv, dtype=F64))
+    for _ in range(200):
+        state = torchsim.step(sys, state, _zero_ctrl(sys))
+    diff_mm = 1000 * (state.q[0, 2].item() - d.qpos[2])
+    print(f"{method}: torso height {state.q[0, 2].item():.4f} vs MuJoCo {d.qpos[2]:.4f} ({diff_mm:+.1f} mm)")
+    assert abs(diff_mm) < ANT_SETTLE_MM
