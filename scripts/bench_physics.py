@@ -15,8 +15,9 @@ the model's first keyframe next to MuJoCo, and the torso-height difference is pr
 
 ``--steps`` defaults to "auto": per method, batch and mode (eager / compiled) the number of timed steps is chosen
 from the warm-up step time so that one measurement takes about ``--min-time`` seconds (at least 1 step, at most
-``--max-steps``). MuJoCo then uses the compiled (else the eager) step count per rollout call and repeats the call
-until ``--min-time`` has elapsed, so that its timing is not dominated by call overhead at small batch.
+``--max-steps``). MuJoCo then uses the compiled (else the eager) step count per rollout call, raised so that one call
+does at least ``--mujoco-min-env-steps`` env-steps, and repeats the call until ``--min-time`` has elapsed, so that its
+timing is not dominated by call overhead at small batch.
 """
 
 import argparse
@@ -42,6 +43,8 @@ def parse_args(argv=None):
                    help="timed steps per measurement (default: auto, see --min-time / --max-steps)")
     p.add_argument("--min-time", type=float, default=1.0, help="auto steps: target seconds per measurement")
     p.add_argument("--max-steps", type=int, default=200, help="auto steps: upper bound")
+    p.add_argument("--mujoco-min-env-steps", type=int, default=1000,
+                   help="MuJoCo: raise the steps per rollout call so that batch * steps >= this (call overhead)")
     p.add_argument("--repeats", type=int, default=3, help="measurements per number reported (median)")
     p.add_argument("--no-compile", action="store_true", help="skip torch.compile")
     p.add_argument("--no-eager", action="store_true", help="skip eager mode")
@@ -398,7 +401,8 @@ def main():
                         restore()
             if not ARGS.no_mujoco:
                 src = res.get("compiled") if res.get("compiled") and "steps" in res["compiled"] else res.get("eager")
-                nstep = src["steps"] if src else (ARGS.steps or 100)
+                nstep = src["steps"] if src else (ARGS.steps or 1)
+                nstep = max(nstep, math.ceil(ARGS.mujoco_min_env_steps / batch))
                 res["mujoco"] = bench_mujoco(m, q_np, qd_np, ctrl_np, nstep)
                 mj = res["mujoco"]
                 log(f"  MuJoCo batch={batch} nstep={nstep}: 1 thread {mj['rate1']:,.0f} steps/s, "

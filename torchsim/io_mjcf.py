@@ -24,7 +24,7 @@ from torchsim.collision import SHAPE_RANK
 from torchsim.system import ContactGroup, System
 
 # Default substep lengths [s]; the substep count is ceil(timestep / h).
-DEFAULT_SUBSTEP = {"spring": 2.5e-4, "xpbd": 1e-3}
+DEFAULT_SUBSTEP = {"spring": 5e-4, "xpbd": 5e-4}
 METHODS = tuple(DEFAULT_SUBSTEP)
 _SHAPE_NAME = {
     int(mujoco.mjtGeom.mjGEOM_PLANE): "plane",
@@ -42,14 +42,14 @@ class UnsupportedMJCFError(ValueError):
 
 def load_mjcf(
     source,
-    method: str = "xpbd",
+    method: str = "spring",
     substeps: int | None = None,
     dtype: torch.dtype = torch.float32,
     device="cpu",
     joint_stiffness: float = 0.1,
     joint_damping: float = 0.5,
     contact_timeconst: float = 0.02,
-    joint_sweeps: int = 1,
+    xpbd_iterations: int = 1,
     max_speed: float = 1e3,
     max_distance: float = 1e4,
 ) -> System:
@@ -59,16 +59,15 @@ def load_mjcf(
         source: path to an ``.xml`` file, or the XML text itself.
         method: ``"xpbd"`` (position-based projection of joints, limits and contacts) or ``"spring"`` (explicit
             stiff springs for joints and limits, velocity impulses for contacts, in the spirit of Brax v1).
-        substeps: substeps per ``<option timestep>``; default ``ceil(timestep / h)`` with h = 1 ms (xpbd) or
-            0.25 ms (spring).
-        joint_stiffness: spring method only: joint spring stiffness as a fraction of the explicit stability limit
-            (k = stiffness * m_eff / h^2).
-        joint_damping: spring method only: joint damping as a fraction of h-critical damping (c = damping * m_eff / h).
+        substeps: substeps per ``<option timestep>``; default ``ceil(timestep / h)`` with h = 0.5 ms (ant: 20).
+        joint_stiffness: spring method only: fraction of a joint's error its spring removes per substep
+            (gain ``stiffness / h^2 K^-1``, ``K`` the joint's inverse-inertia block).
+        joint_damping: spring method only: fraction of a joint's error rate its damper removes per substep.
         contact_timeconst: time constant [s] with which penetration is removed (MuJoCo's default ``solref``
             time constant, 0.02 s): the spring method adds a separating speed ``depth / timeconst`` (Baumgarte),
             XPBD removes ``h / timeconst`` of the depth per substep. Removing all of it at once would launch bodies
             that start interpenetrating.
-        joint_sweeps: forward-and-back Gauss-Seidel sweeps over the joint colours for armature and damping.
+        xpbd_iterations: XPBD only: projection passes (contacts, then joint colours) per substep.
         max_speed, max_distance: an env whose body speed [m/s] or distance from the origin [m] exceeds these is
             flagged as diverged.
     """
@@ -86,7 +85,7 @@ def load_mjcf(
     sys = System(
         nq=m.nq, nv=m.nv, nu=m.nu, timestep=float(m.opt.timestep), substeps=int(substeps), method=method,
         gravity=torch.as_tensor(gravity), q0=torch.as_tensor(m.qpos0.copy()),
-        joint_stiffness=joint_stiffness, joint_damping=joint_damping, contact_timeconst=contact_timeconst, joint_sweeps=joint_sweeps,
+        joint_stiffness=joint_stiffness, joint_damping=joint_damping, contact_timeconst=contact_timeconst, xpbd_iterations=xpbd_iterations,
         max_speed=max_speed, max_distance=max_distance, **fields,
     )
     return sys.to(device=device, dtype=dtype)

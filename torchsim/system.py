@@ -79,7 +79,7 @@ class System:
     joint_stiffness: float
     joint_damping: float
     contact_timeconst: float
-    joint_sweeps: int
+    xpbd_iterations: int
     max_speed: float
     max_distance: float
     # bodies

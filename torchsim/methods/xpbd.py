@@ -1,10 +1,13 @@
-"""XPBD: after an unconstrained substep, project joints, limits and contacts onto their constraints by position.
+"""XPBD: after an unconstrained substep, project contacts and joints onto their constraints by position.
 
-Each joint is solved exactly (to first order) as one 6x6 block system (translation rows and rotation rows in
-block system, eliminated with 3x3 Schur complements, per joint. Joints of one colour share no body and run in
-parallel; colours, then limits, then contacts follow Gauss-Seidel. Contacts on the same body are averaged
-(Jacobi). Contact friction is positional Coulomb friction: the substep's tangential slip is undone up to
-``mu`` times the normal correction. Velocities are then the substep's displacement over ``h``.
+Each joint is solved exactly (to first order) as one 6x6 block system: 3 translation rows and 3 rotation rows in
+the joint's hinge-slot coordinates (hard for constrained directions and for dofs beyond their limits), eliminated
+with 3x3 Schur complements. Joints of one colour share no body and run in parallel; contacts, then colours, follow
+Gauss-Seidel (``xpbd_iterations`` passes). Contacts on the same body are averaged (Jacobi). Contact friction is
+positional Coulomb friction: the substep's tangential slip is undone up to ``mu`` times the normal correction.
+Velocities are then the substep's displacement over ``h``; armature gets its share of the projection's effect at
+velocity level (``joint_space``), which is first order in ``h``: with armature much heavier than the links it
+drives (the ant), the projection's bare-inertia displacements dominate and the ant collapses (see the tests).
 """
 
 import torch
@@ -16,19 +19,12 @@ from torchsim.kinematics import Bodies, dof_values, joint_frames
 from torchsim.system import System
 
 
-def _wrap(angle: torch.Tensor) -> torch.Tensor:
-    return torch.atan2(torch.sin(angle), torch.cos(angle))
-
-
-def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pred: torch.Tensor) -> Bodies:
-    """Solve every joint colour by colour: anchors coincide, constrained axes align, hinge dofs stay in range,
-    and hinge dofs with armature keep its share of the correction.
+def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bodies:
+    """Solve every joint colour by colour: anchors coincide, constrained axes align, hinge dofs stay in range.
 
     Per joint, 3 translation rows and 3 rotation rows in the joint's hinge-slot coordinates (``G = A^-1`` maps a
     relative rotation onto the slots' axes ``A``) are solved together by 3x3 Schur complements. A rotation row is
-    hard for a constrained direction or a dof beyond its limit, compliant with compliance ``1/J`` for a dof with
-    armature ``J`` (pulling it towards its force-driven prediction ``q_pred (B, D)``, as a rotor of inertia J
-    would), and absent for a free dof.
+    hard for a constrained direction or for a dof beyond its limit, and absent for a free dof.
     """
     for colour in sys.jnt_colors:
         child, parent = sys.jnt_child[colour], sys.jnt_parent[colour]
@@ -48,24 +44,18 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pre
         q = fr.q[..., 3:] + torch.where(has_dof, sys.dof_ref[dof], 0.0)
         lo, hi = sys.dof_range[dof].unbind(-1)
         violation = torch.where(has_dof & sys.dof_limited[dof], torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0), 0.0)
-        armature = torch.zeros_like(q)  # armature acts at velocity level (joint_space), after the projection
         mode = sys.jnt_mode[colour]
         hard = (mode[:, :3] @ torch.tensor([[1.0, 1, 1], [0, 1, 1], [0, 0, 1]], dtype=mode.dtype, device=mode.device)) > 0
-        stop = hard | (violation != 0)
-        soft = ~stop & (armature > 0)
-        include = stop | soft
         g = math.inv3(fr.axes[..., 3:, :].transpose(-1, -2))
-        error = torch.where(hard, math.matvec(g, fr.ang_err),
-                            torch.where(violation != 0, violation, _wrap(q - torch.where(has_dof, q_pred[:, dof], q))))
-        compliance = torch.where(soft, 1.0 / armature.clamp_min(1e-30), 0.0)
-        mask = include.to(q.dtype)
+        error = torch.where(hard, math.matvec(g, fr.ang_err), violation)
+        mask = (hard | (violation != 0)).to(q.dtype)
         p_m = torch.diag_embed(mask)
         gt = g.transpose(-1, -2)
 
         p_l = fr.lin_proj
         a = p_l @ k_ll @ p_l + (eye - p_l)  # identity on the free directions keeps the blocks invertible
         b = p_l @ k_la @ gt @ p_m
-        c = p_m @ (g @ k_aa @ gt + torch.diag_embed(compliance)) @ p_m + torch.diag_embed(1.0 - mask)
+        c = p_m @ g @ k_aa @ gt @ p_m + torch.diag_embed(1.0 - mask)
         a_inv = math.inv3(a)
         bt_ainv = b.transpose(-1, -2) @ a_inv
         rhs_l, rhs_s = -fr.lin_err, -mask * error
@@ -147,9 +137,9 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     q_pred = q + h * qd_pred
     moved = integrator.integrate_positions(after, h)
     inv = rigid.inverse_inertia(sys, moved.x_quat, inv_inertia_body)
-    for _ in range(sys.joint_sweeps):
+    for _ in range(sys.xpbd_iterations):
         moved, con, active, scale_a, scale_b = project_contacts(sys, moved, bodies, inv, h)
-        moved = project_joints(sys, moved, inv, q_pred)
+        moved = project_joints(sys, moved, inv)
     if sys.jnt_has_slides:
         moved = correct_slides(sys, moved, inv, q_pred)
     xd_vel = (moved.x_pos - bodies.x_pos) / h
