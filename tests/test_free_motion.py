@@ -44,14 +44,11 @@ def test_projectile(method):
     assert torch.allclose(state.qd[:, :3], state.xd_vel[:, 0], atol=1e-12)
 
 
-# The brief asks for 10 s (10,000 steps at 1 ms): eagerly ~70 s (xpbd) + ~200 s (spring) of CPU, most of the
-# suite's budget. The |L| and energy drifts are secular (linear in time: measured 1.14e-3 and 9.9e-4 at 10 s vs
-# 2.26e-4 and 1.9e-4 at 2 s for xpbd), so the default runs 2 s with those 10 s tolerances scaled by T / 10 s.
+# The brief asks for 10 s (10,000 steps at 1 ms), which is the default; TORCHSIM_SPIN_SECONDS=2 gives a quick run
+# with the |L| and energy tolerances scaled by T / 10 s (those drifts are secular: linear in time).
 # The direction error is partly a bounded O(h |w|) wobble that peaks within the first nutation period (2.7 s for
-# the minor-axis spin: xpbd 1.10e-3 at 2 s vs 1.11e-3 at 10 s), so its 1e-3 is NOT scaled; the short run then
-# misses a slow secular part (xpbd major-axis spin: 1.9e-4 at 2 s, 1.13e-3 at 10 s), which only the full run sees.
-# TORCHSIM_SPIN_SECONDS=10 runs the brief's full 10 s.
-SPIN_SECONDS = float(os.environ.get("TORCHSIM_SPIN_SECONDS", "2"))
+# the minor-axis spin), so its 1e-3 is not scaled; a short run misses its slow secular part.
+SPIN_SECONDS = float(os.environ.get("TORCHSIM_SPIN_SECONDS", "10"))
 
 
 @pytest.mark.parametrize("method", METHODS)

@@ -46,7 +46,7 @@ def load_mjcf(
     substeps: int | None = None,
     dtype: torch.dtype = torch.float32,
     device="cpu",
-    joint_stiffness: float = 0.1,
+    joint_stiffness: float = 0.2,
     joint_damping: float = 0.5,
     contact_timeconst: float = 0.02,
     xpbd_iterations: int = 1,
@@ -63,10 +63,10 @@ def load_mjcf(
         joint_stiffness: spring method only: fraction of a joint's error its spring removes per substep
             (gain ``stiffness / h^2 K^-1``, ``K`` the joint's inverse-inertia block).
         joint_damping: spring method only: fraction of a joint's error rate its damper removes per substep.
-        contact_timeconst: time constant [s] with which penetration is removed (MuJoCo's default ``solref``
-            time constant, 0.02 s): the spring method adds a separating speed ``depth / timeconst`` (Baumgarte),
-            XPBD removes ``h / timeconst`` of the depth per substep. Removing all of it at once would launch bodies
-            that start interpenetrating.
+        contact_timeconst: spring method only: time constant [s] with which penetration is removed, as a
+            separating speed ``depth / timeconst`` (Baumgarte; 0.02 s is MuJoCo's default ``solref`` time
+            constant). A per-substep fraction instead would launch bodies that start interpenetrating at
+            ``depth / h``. XPBD removes penetration in full and zeroes the contacts' normal speed.
         xpbd_iterations: XPBD only: projection passes (contacts, then joint colours) per substep.
         max_speed, max_distance: an env whose body speed [m/s] or distance from the origin [m] exceeds these is
             flagged as diverged.

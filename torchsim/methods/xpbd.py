@@ -82,9 +82,8 @@ def correct_slides(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pre
     return rigid.apply_dof_impulse(sys, bodies, inv, axes, impulse - violation / w, position=True)
 
 
-def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.InverseInertia, h: float):
-    """Remove ``h / contact_timeconst`` of the penetration along the normal, then undo tangential slip within the
-    Coulomb cone.
+def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.InverseInertia):
+    """Resolve penetration along the normal, then undo tangential slip within the Coulomb cone.
 
     Returns the corrected bodies, the contacts, their activity and their averaging weights (velocity pass).
     """
@@ -96,7 +95,7 @@ def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.I
     scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[1])
     scale_a, scale_b = scale_a[..., None], scale_b[..., None]
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
-    lam_n = active * con.depth * min(1.0, h / sys.contact_timeconst) / w_n
+    lam_n = active * con.depth / w_n
     # where the contact point was at the start of the substep, on each body
     prev_a = previous.x_pos[:, a] + math.quat_rotate(previous.x_quat[:, a], math.quat_rotate_inv(bodies.x_quat[:, a], r_a))
     prev_b = previous.x_pos[:, b] + math.quat_rotate(previous.x_quat[:, b], math.quat_rotate_inv(bodies.x_quat[:, b], r_b))
@@ -138,7 +137,7 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     moved = integrator.integrate_positions(after, h)
     inv = rigid.inverse_inertia(sys, moved.x_quat, inv_inertia_body)
     for _ in range(sys.xpbd_iterations):
-        moved, con, active, scale_a, scale_b = project_contacts(sys, moved, bodies, inv, h)
+        moved, con, active, scale_a, scale_b = project_contacts(sys, moved, bodies, inv)
         moved = project_joints(sys, moved, inv)
     if sys.jnt_has_slides:
         moved = correct_slides(sys, moved, inv, q_pred)
