@@ -50,10 +50,13 @@ def parse_args(argv=None):
     p.add_argument("--no-eager", action="store_true", help="skip eager mode")
     p.add_argument("--no-mujoco", action="store_true", help="skip the MuJoCo reference timings")
     p.add_argument("--no-accuracy", action="store_true", help="skip the float64 accuracy check against MuJoCo")
-    p.add_argument("--compile-scope", choices=["step", "substep"], default="step",
-                   help="'step': torch.compile(torchsim.step) as a whole (default); 'substep': compile only the "
-                        "method's substep function (torchsim.pipeline.SUBSTEP, patched at run time in this "
-                        "process only), a much smaller graph")
+    p.add_argument("--compile-scope", choices=["step", "substep"], default="substep",
+                   help="'substep' (default): compile only the method's substep function (torchsim.pipeline.SUBSTEP, "
+                        "patched at run time in this process only; torchsim.step's loop calls it sys.substeps times); "
+                        "'step': torch.compile(torchsim.step) as a whole (all substeps unrolled into one graph; on a "
+                        "2-core CPU Inductor had not finished one xpbd variant after 25 min)")
+    p.add_argument("--no-vectorize", action="store_true",
+                   help="Inductor CPU codegen without SIMD (cpp.simdlen=1): shorter compiles, possibly slower code")
     p.add_argument("--compile-style", choices=["closure", "arg"], default="closure",
                    help="'closure': compile lambda s, c: step(sys, s, c); 'arg': compile step itself, sys as argument")
     p.add_argument("--keep-inductor-cache", action="store_true",
@@ -61,7 +64,10 @@ def parse_args(argv=None):
                         "temporary cache directory so compile times are cold")
     p.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     p.add_argument("--device", default="cpu", help="cpu or cuda[:i]")
-    p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's default)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch intra-op threads (default: torch's default, one per core). On a machine shared with "
+                        "other busy processes 1 can be much faster than the default (OpenMP threads wait on each "
+                        "other at every op)")
     p.add_argument("--model", default=str(ROOT / "envs" / "assets" / "ant.xml"))
     p.add_argument("--accuracy-seconds", type=float, default=2.0)
     p.add_argument("--seed", type=int, default=0)
@@ -119,6 +125,8 @@ def machine_info(device: torch.device, dtype: torch.dtype) -> dict:
         "cpu": cpu_model(),
         "cpu_count": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
+        "compile": f"scope={ARGS.compile_scope}" + (f" style={ARGS.compile_style}" if ARGS.compile_scope == "step" else "")
+                   + (" no-vectorize" if ARGS.no_vectorize else ""),
         "device": str(device) + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""),
         "dtype": str(dtype).replace("torch.", ""),
         "loadavg_start": " ".join(f"{x:.2f}" for x in os.getloadavg()),
@@ -245,6 +253,18 @@ def configure_dynamo():
     for name in ("cache_size_limit", "recompile_limit"):
         if hasattr(cfg, name):
             setattr(cfg, name, max(getattr(cfg, name), 64))
+    if ARGS.no_vectorize:
+        torch._inductor.config.cpp.simdlen = 1
+
+
+def warm_engine(system, device, dtype):
+    """One eager step at batch 1 so that lazily built module-level tables (e.g. ``torchsim.math._CACHE``, keyed by
+    dtype and device) exist before tracing; otherwise the traced code mutates them and the first compiled call is
+    followed by a guard failure and a second full compile."""
+    with torch.no_grad():
+        state = torchsim.init(system, system.q0.to(device=device, dtype=dtype)[None],
+                              torch.zeros(1, system.nv, device=device, dtype=dtype))
+        torchsim.step(system, state, torch.zeros(1, system.nu, device=device, dtype=dtype))
 
 
 def make_compiled(system):
@@ -365,6 +385,7 @@ def main():
     for method in ARGS.methods:
         system = torchsim.load_mjcf(ARGS.model, method=method, dtype=dtype, device=device)
         log(f"\n[{method}] timestep={system.timestep:g} s, substeps={system.substeps}")
+        warm_engine(system, device, dtype)
         for batch in ARGS.batches:
             rng = np.random.default_rng(ARGS.seed + batch)
             q_np, qd_np, ctrl_np = make_inputs(m, batch, rng)
@@ -385,11 +406,18 @@ def main():
                     fn, restore = make_compiled(system)
                     try:
                         holder = {}
+                        graphs = lambda: torch._dynamo.utils.counters["stats"]["unique_graphs"]  # noqa: E731
+                        g0 = graphs()
                         compile_s = timed(lambda: holder.setdefault("s", fn(state0, ctrl)), device)
-                        log(f"  {method} batch={batch} compiled: compile (first call) {compile_s:.1f} s")
+                        g1 = graphs()
+                        log(f"  {method} batch={batch} compiled: compile (first call) {compile_s:.1f} s, "
+                            f"{g1 - g0} graph(s)")
                         res["compiled"] = bench_torchsim(fn, holder["s"], ctrl, batch, device,
                                                          f"{method} B={batch} compiled")
                         res["compiled"]["compile_s"] = compile_s
+                        if graphs() != g1:
+                            log(f"  WARNING: {graphs() - g1} recompilation(s) during the compiled timing; "
+                                "that time is included in the compiled steps/s")
                         log(f"  {method} batch={batch} compiled: {res['compiled']['rate']:,.0f} steps/s "
                             f"(median of {res['compiled']['repeats']} x {res['compiled']['steps']} steps, "
                             f"diverged {res['compiled']['diverged']}/{batch})")

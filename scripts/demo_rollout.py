@@ -35,7 +35,8 @@ def main() -> None:
     n_steps = max(1, round(args.seconds / dt))
     report_every = max(1, round(0.25 / dt))
     print(f"ant: method={args.method} envs={B} nq={system.nq} nv={system.nv} nu={system.nu} "
-          f"dt={dt:g}s steps={n_steps} device={device}")
+          f"dt={dt:g}s substeps={system.substeps} contact pairs={system.num_contact_pairs} "
+          f"(points {system.num_contacts}) steps={n_steps} device={device}")
 
     home = torch.as_tensor(mujoco.MjModel.from_xml_path(str(ANT_XML)).key_qpos[0], dtype=system.dtype)
     q = home.to(device).expand(B, -1).clone()
