@@ -12,4 +12,4 @@ from torchsim.pipeline import init, step
 from torchsim.state import State
 from torchsim.system import System
 
-__all__ = ["load_mjcf", "init", "step", "State", "System", "UnsupportedMJCFError", "mj_body_poses"]
+__all__ = ["load_mjcf", "init", "step", "State", "System", "UnsupportedMJCFError", "mj_body_poses", "kinematics"]

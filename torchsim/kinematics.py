@@ -193,7 +193,7 @@ def read_q(sys: System, bodies: Bodies, frames: JointFrames):
 def forward(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
     """Body COM poses and velocities ``(B, N, ...)`` for generalized ``q (B, nq)``, ``qd (B, nv)``, MuJoCo semantics."""
     b, n = q.shape[0], sys.num_bodies
-    dtype, device = q.dtype, q.device
+    device = q.device
     x_pos = q.new_zeros(b, n + 1, 3)
     x_quat = q.new_zeros(b, n + 1, 4)
     x_quat[..., 0] = 1.0
