@@ -1,6 +1,6 @@
 """Demo: batched random-control rollout of the MJCF Ant with torchsim.
 
-    python scripts/demo_rollout.py --method spring --num-envs 64 --seconds 2.0
+    python scripts/demo_rollout.py --method spring --num-envs 64 --seconds 0.5
 
 Starts every env from the model's "home" keyframe with +-0.05 rad of noise on the hinges.
 """
@@ -21,7 +21,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--method", choices=["spring", "xpbd"], default="spring")
     parser.add_argument("--num-envs", type=int, default=64)
-    parser.add_argument("--seconds", type=float, default=2.0, help="simulated time")
+    parser.add_argument("--seconds", type=float, default=0.5, help="simulated time")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args()
@@ -33,7 +33,7 @@ def main() -> None:
     device = torch.device(args.device)
     B, dt = args.num_envs, float(system.timestep)
     n_steps = max(1, round(args.seconds / dt))
-    report_every = max(1, round(0.25 / dt))
+    report_every = max(1, round(0.1 / dt))
     print(f"ant: method={args.method} envs={B} nq={system.nq} nv={system.nv} nu={system.nu} "
           f"dt={dt:g}s substeps={system.substeps} contact pairs={system.num_contact_pairs} "
           f"(points {system.num_contacts}) steps={n_steps} device={device}")
