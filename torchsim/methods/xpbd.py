@@ -7,7 +7,7 @@ Gauss-Seidel (``xpbd_iterations`` passes). Contacts on the same body are average
 positional Coulomb friction: the substep's tangential slip is undone up to ``mu`` times the normal correction.
 Velocities are then the substep's displacement over ``h``; armature gets its share of the projection's effect at
 velocity level (``joint_space``), which is first order in ``h``: with armature much heavier than the links it
-drives (the ant), the projection's bare-inertia displacements dominate and the ant collapses (see the tests).
+drives (the ant), the projection's bare-inertia displacements dominate and the ant settles too low (see the tests).
 """
 
 import torch
