@@ -1,0 +1,232 @@
+"""One TorchRL environment class for every torchsim task: specs, batched stepping, partial and native resets.
+
+A task subclass names its model and frame count and defines four small functions of the simulator state:
+``_sample_init`` (reset distribution), ``_observation``, ``_reward`` and ``_terminated``. Everything here is
+batched over ``num_envs`` and free of host syncs (no ``.item()``, no boolean indexing, no data-dependent Python
+branches), so ``step`` and ``step_and_maybe_reset`` trace into one graph.
+"""
+
+import mujoco
+import torch
+from tensordict import TensorDict, TensorDictBase
+from torchrl.data import Bounded, Categorical, Composite, Unbounded
+from torchrl.envs import EnvBase
+
+import torchsim
+from torchsim.envs import asset_path
+from torchsim.state import State
+
+#: Randomisable physical parameters and what they scale (see ``TorchsimEnv.set_physics``).
+PHYSICS_PARAMS = ("mass_scale", "friction_scale", "actuator_gain_scale")
+
+
+def select_state(mask: torch.Tensor, new: State, old: State) -> State:
+    """Per env: ``new`` where ``mask (B,)`` is set, else ``old``."""
+    return State(*(torch.where(mask.view((-1,) + (1,) * (n.ndim - 1)), n, o) for n, o in zip(new, old)))
+
+
+class TorchsimEnv(EnvBase):
+    """Base class of the torchsim tasks (a TorchRL ``EnvBase`` with ``batch_size=(num_envs,)``).
+
+    Actions live in ``[-1, 1]^nu`` and map linearly onto each actuator's ``ctrlrange``; actions outside that box
+    are clipped (the reward's control cost sees the clipped, mapped control). Each ``step`` advances the physics
+    ``frame_skip`` times (``dt = frame_skip * timestep``). Episodes end when the task terminates, when the env's
+    physics diverged (flagged by the engine; the env is frozen, reported ``terminated`` and reset like any other),
+    or, as truncation, after ``episode_length`` steps.
+
+    Args:
+        num_envs: batch size.
+        device, dtype: where and in which precision the physics and every emitted tensor live.
+        episode_length: steps before truncation.
+        native_autoreset: reset finished envs inside ``_step`` (TorchRL's native auto-reset path): the returned
+            observation of a finished env is already its next episode's first one, and TorchRL writes NaN into
+            its ``("next", "observation")``; use with ``GAE(..., auto_reset_env=True)``. This makes
+            ``step_and_maybe_reset`` free of host syncs so it compiles as one graph.
+        method, substeps: physics solution method and substeps per model timestep (``torchsim.load_mjcf``).
+    """
+
+    model_file: str
+    frame_skip: int
+    #: Reset noise added to the initial ``q`` / ``qd``: (distribution, scale), distribution "uniform" (+-scale)
+    #: or "normal" (standard deviation scale).
+    noise_q = ("uniform", 0.1)
+    noise_qd = ("normal", 0.1)
+    #: MuJoCo bodies whose frames the task reads (``mj_body_positions``), in that order.
+    named_bodies: tuple = ()
+    #: Observation size (checked against ``_observation`` at construction).
+    observation_size: int
+
+    def __init__(self, num_envs: int = 1, *, device="cpu", dtype=torch.float32, episode_length: int = 1000,
+                 native_autoreset: bool = False, method: str = "spring", substeps: int | None = None):
+        if int(num_envs) < 1:
+            raise ValueError(f"num_envs must be a positive integer, got {num_envs}")
+        super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
+        self.mj_model = mujoco.MjModel.from_xml_path(str(asset_path(self.model_file)))
+        self.base_sys = torchsim.load_mjcf(asset_path(self.model_file), method=method, substeps=substeps,
+                                           dtype=dtype, device=self.device)
+        self.sys = self.base_sys
+        self.episode_length = int(episode_length)
+        self.dt = self.frame_skip * self.sys.timestep
+        self._free_quat_qpos = [int(a) + 3 for a in self.sys.free_qpos]  # Python ints: no sync at step time
+        if native_autoreset:
+            self.__dict__["_torchrl_native_autoreset"] = True
+        self._named_body_ids = [self.mj_body_id(name) for name in self.named_bodies]
+        keyframe = self.mj_model.key_qpos[0] if self.mj_model.nkey else self.mj_model.qpos0
+        self.register_buffer("init_q", torch.as_tensor(keyframe, dtype=dtype, device=self.device))
+        ctrl_range = torch.as_tensor(self.mj_model.actuator_ctrlrange, dtype=dtype, device=self.device)
+        self.register_buffer("ctrl_low", ctrl_range[:, 0])
+        self.register_buffer("ctrl_high", ctrl_range[:, 1])
+        self._make_specs(dtype)
+        self.state = self._initial_state()
+        obs = self._observation(self.state, self._zero_ctrl())
+        if obs.shape != (*self.batch_size, self.observation_size):
+            raise RuntimeError(f"{type(self).__name__}: observation has shape {tuple(obs.shape)}, expected "
+                               f"{(*self.batch_size, self.observation_size)}")
+        self.register_buffer("step_count", torch.zeros(self.batch_size, dtype=torch.long, device=self.device))
+
+    # ----------------------------------------------------------------------------------------------- task hooks
+    def _sample_init(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Initial ``q (n, nq)`` and ``qd (n, nv)`` of fresh episodes: the model's first keyframe (else qpos0)
+        plus ``noise_q`` / ``noise_qd``; free-joint quaternions are renormalised."""
+        q = self.init_q.expand(n, -1) + self._noise(self.noise_q, (n, self.sys.nq))
+        qd = self._noise(self.noise_qd, (n, self.sys.nv))
+        for adr in self._free_quat_qpos:
+            quat = q[:, adr:adr + 4]
+            q = torch.cat((q[:, :adr], quat / quat.norm(dim=-1, keepdim=True), q[:, adr + 4:]), -1)
+        return q, qd
+
+    def _observation(self, state: State, ctrl: torch.Tensor) -> torch.Tensor:
+        """Observation ``(B, observation_size)`` in ``state``, reached under controls ``ctrl (B, nu)`` (zero at the
+        start of an episode)."""
+        raise NotImplementedError
+
+    def _reward(self, before: State, after: State, ctrl: torch.Tensor) -> torch.Tensor:
+        """Reward ``(B,)`` of the transition ``before -> after`` under (clipped, mapped) controls ``ctrl``."""
+        raise NotImplementedError
+
+    def _terminated(self, state: State) -> torch.Tensor:
+        """``(B,)`` bool: the episode ended in ``state`` (default: never)."""
+        return torch.zeros_like(state.diverged)
+
+    # -------------------------------------------------------------------------------------------------- helpers
+    def _noise(self, spec, shape) -> torch.Tensor:
+        kind, scale = spec
+        dtype = self.sys.dtype
+        if kind == "uniform":
+            return scale * (2.0 * torch.rand(shape, dtype=dtype, device=self.device) - 1.0)
+        return scale * torch.randn(shape, dtype=dtype, device=self.device)
+
+    def _initial_state(self) -> State:
+        q, qd = self._sample_init(self.batch_size[0])
+        return torchsim.init(self.sys, q, qd)
+
+    def _ctrl(self, action: torch.Tensor) -> torch.Tensor:
+        """Clip ``action`` to [-1, 1] and map it onto the actuators' control ranges."""
+        action = action.clamp(-1.0, 1.0)
+        return self.ctrl_low + 0.5 * (action + 1.0) * (self.ctrl_high - self.ctrl_low)
+
+    def _zero_ctrl(self) -> torch.Tensor:
+        return torch.zeros((*self.batch_size, self.sys.nu), dtype=self.sys.dtype, device=self.device)
+
+    def _check_action(self, action: torch.Tensor) -> None:
+        expected = (*self.batch_size, self.sys.nu)
+        if tuple(action.shape) != expected:
+            raise ValueError(f"{type(self).__name__}: action must have shape {expected}, got {tuple(action.shape)}")
+        if action.dtype != self.sys.dtype:
+            raise ValueError(f"{type(self).__name__}: action must have dtype {self.sys.dtype}, got {action.dtype}")
+        if action.device != self.device:
+            raise ValueError(f"{type(self).__name__}: action is on {action.device}, the env on {self.device}")
+
+    def _make_specs(self, dtype) -> None:
+        shape, dev = self.batch_size, self.device
+        self.observation_spec = Composite(
+            observation=Unbounded((*shape, self.observation_size), dtype=dtype, device=dev), shape=shape)
+        self.action_spec = Bounded(-1.0, 1.0, (*shape, self.sys.nu), dtype=dtype, device=dev)
+        self.reward_spec = Unbounded((*shape, 1), dtype=dtype, device=dev)
+        flag = lambda: Categorical(2, (*shape, 1), dtype=torch.bool, device=dev)  # noqa: E731
+        self.full_done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=shape)
+
+    def _output(self, obs, **fields) -> TensorDict:
+        return TensorDict(observation=obs, **fields, batch_size=self.batch_size, device=self.device)
+
+    # ---------------------------------------------------------------------------------------------- public API
+    def set_state(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
+        """Put every env at ``q (B, nq)``, ``qd (B, nv)`` (MuJoCo layout), restart its episode; return the obs."""
+        self.state = torchsim.init(self.sys, q, qd)
+        self.step_count.zero_()
+        return self._observation(self.state, self._zero_ctrl())
+
+    def set_physics(self, **scales) -> None:
+        """Per-env physical parameters for domain randomisation, as multiples of the model's values.
+
+        Keywords (each a scalar or a ``(num_envs,)`` tensor; omitted ones return to 1): ``mass_scale`` (every
+        body's mass and inertia), ``friction_scale`` (every contact pair's sliding friction),
+        ``actuator_gain_scale`` (every actuator's gain, i.e. motor strength). The model is not rebuilt.
+        """
+        unknown = set(scales) - set(PHYSICS_PARAMS)
+        if unknown:
+            raise ValueError(f"unknown physics parameter(s) {sorted(unknown)}; expected some of {PHYSICS_PARAMS}")
+        b = self.base_sys
+        s = {k: torch.as_tensor(scales.get(k, 1.0), dtype=b.dtype, device=self.device).expand(self.batch_size)
+             for k in PHYSICS_PARAMS}
+        mass = s["mass_scale"][:, None]
+        self.sys = b.replace(
+            body_mass=b.body_mass * mass, body_inertia=b.body_inertia * mass[..., None, None],
+            act_gain=b.act_gain * s["actuator_gain_scale"][:, None],
+            contact_groups=tuple(g._replace(friction=g.friction * s["friction_scale"][:, None])
+                                 for g in b.contact_groups))
+
+    def _set_seed(self, seed: int | None) -> None:
+        # The global generator: an explicit torch.Generator would break fullgraph compilation of the step.
+        if seed is not None:
+            torch.manual_seed(seed)
+
+    def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
+        fresh = self._initial_state()
+        mask = None if tensordict is None else tensordict.get("_reset", None)
+        if mask is None:
+            self.state = fresh
+            self.step_count.zero_()
+        else:
+            mask = mask.reshape(self.batch_size)
+            self.state = select_state(mask, fresh, self.state)
+            self.step_count.copy_(torch.where(mask, 0, self.step_count))
+        no = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
+        return self._output(self._observation(self.state, self._zero_ctrl()), done=no, terminated=no.clone(), truncated=no.clone())
+
+    def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
+        action = tensordict.get("action")
+        self._check_action(action)
+        ctrl = self._ctrl(action)
+        before = self.state
+        state = before
+        for _ in range(self.frame_skip):
+            state = torchsim.step(self.sys, state, ctrl)
+        reward = torch.where(state.diverged, 0.0, self._reward(before, state, ctrl))
+        terminated = self._terminated(state) | state.diverged
+        self.step_count.add_(1)
+        truncated = self.step_count >= self.episode_length
+        done = terminated | truncated
+        if self.__dict__.get("_torchrl_native_autoreset", False):
+            state = select_state(done, self._initial_state(), state)
+            self.step_count.copy_(torch.where(done, 0, self.step_count))
+            ctrl = torch.where(done[:, None], 0.0, ctrl)
+        self.state = state
+        return self._output(self._observation(state, ctrl), reward=reward[:, None].to(self.sys.dtype),
+                            done=done[:, None], terminated=terminated[:, None], truncated=truncated[:, None])
+
+    def mj_body_id(self, name: str) -> int:
+        """Index of the MuJoCo body ``name`` (for :func:`torchsim.mj_body_poses`); a clear error if absent."""
+        body = mujoco.mj_name2id(self.mj_model, mujoco.mjtObj.mjOBJ_BODY, name)
+        if body < 0:
+            raise ValueError(f"{self.model_file} has no body named {name!r}")
+        return body
+
+    def mj_body_poses(self, state: State) -> tuple[torch.Tensor, torch.Tensor]:
+        """World positions ``(B, K, 3)`` and orientations ``(B, K, 4)`` of the K ``named_bodies``' frames."""
+        pos, quat = torchsim.mj_body_poses(self.sys, state.x_pos, state.x_quat)
+        return pos[:, self._named_body_ids], quat[:, self._named_body_ids]
+
+    def mj_body_positions(self, state: State) -> torch.Tensor:
+        """World positions ``(B, K, 3)`` of the K ``named_bodies``' frames (fused bodies included)."""
+        return self.mj_body_poses(state)[0]

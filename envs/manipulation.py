@@ -1,0 +1,86 @@
+"""Arm tasks: bring the fingertip to a target (Reacher), push an object onto a goal (Pusher); Brax's definitions."""
+
+import math
+
+import torch
+
+from torchsim.envs.base import TorchsimEnv
+
+
+class Reacher(TorchsimEnv):
+    """Two-link planar arm (``reacher.xml``; the target is a body on two slide joints), ``dt = 2 x 10 ms``.
+
+    Observation (11): cos and sin of the 2 arm angles, target x/y (``q[2:4]``), the 2 arm rates, fingertip minus
+    target (3). Action (2): shoulder and elbow motors. Reward: ``-|fingertip - target| - |a|^2``. No termination.
+    Reset: arm angles U(-0.1, 0.1) about zero and rates U(-0.005, 0.005); the target at radius 0.2 U(0, 1) and a
+    uniform random angle, at rest.
+    """
+
+    model_file = "reacher.xml"
+    frame_skip = 2
+    observation_size = 11
+
+    named_bodies = ("fingertip", "target")
+
+    def _sample_init(self, n):
+        q = self.init_q.expand(n, -1) + self._noise(("uniform", 0.1), (n, self.sys.nq))
+        radius = 0.2 * torch.rand(n, dtype=q.dtype, device=q.device)
+        angle = 2.0 * math.pi * torch.rand(n, dtype=q.dtype, device=q.device)
+        q = torch.cat((q[:, :2], (radius * torch.cos(angle))[:, None], (radius * torch.sin(angle))[:, None]), -1)
+        qd = torch.cat((self._noise(("uniform", 5e-3), (n, 2)), q.new_zeros(n, 2)), -1)
+        return q, qd
+
+    def _tip_minus_target(self, state):
+        tip, target = self.mj_body_positions(state).unbind(1)
+        return tip - target
+
+    def _observation(self, state, ctrl):
+        angles = state.q[:, :2]
+        return torch.cat((torch.cos(angles), torch.sin(angles), state.q[:, 2:4], state.qd[:, :2],
+                          self._tip_minus_target(state)), -1)
+
+    def _reward(self, before, after, ctrl):
+        return -self._tip_minus_target(after).norm(dim=-1) - (ctrl * ctrl).sum(-1)
+
+
+class Pusher(TorchsimEnv):
+    """7-dof arm pushing an object on a table (``pusher.xml``; object and goal each on x/y slide joints),
+    ``dt = 5 x 10 ms``.
+
+    Observation (23): the 7 arm angles and rates, then the world positions of the arm's tip, the object and the
+    goal. Action (7) in [-1, 1] mapped to ctrlrange [-2, 2]. Reward:
+    ``-|object - goal| - 0.1 |ctrl|^2 - 0.5 |tip - object|``. No termination. Reset: the arm at its initial
+    pose with rates U(-0.005, 0.005); the goal at the origin of its slides; the object uniform in
+    [-0.3, 0] x [-0.2, 0.2] but at least 0.17 m from the goal (resampled up to 8 times, then pushed out radially).
+    """
+
+    model_file = "pusher.xml"
+    frame_skip = 5
+    observation_size = 23
+    min_goal_distance = 0.17
+
+    named_bodies = ("tips_arm", "object", "goal")
+
+    def _sample_init(self, n):
+        q = self.init_q.expand(n, -1)
+        low = torch.tensor([-0.3, -0.2], dtype=q.dtype, device=q.device)
+        size = torch.tensor([0.3, 0.4], dtype=q.dtype, device=q.device)
+        goal = q[:, -2:]
+        obj = low + size * torch.rand(n, 2, dtype=q.dtype, device=q.device)
+        for _ in range(8):  # fixed-count rejection sampling: no data-dependent loop
+            retry = low + size * torch.rand(n, 2, dtype=q.dtype, device=q.device)
+            too_close = (obj - goal).norm(dim=-1, keepdim=True) <= self.min_goal_distance
+            obj = torch.where(too_close, retry, obj)
+        away = obj - goal
+        distance = away.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        obj = torch.where(distance <= self.min_goal_distance, goal + away / distance * self.min_goal_distance, obj)
+        q = torch.cat((q[:, :-4], obj, goal), -1)
+        qd = torch.cat((self._noise(("uniform", 5e-3), (n, self.sys.nv - 4)), q.new_zeros(n, 4)), -1)
+        return q, qd
+
+    def _observation(self, state, ctrl):
+        return torch.cat((state.q[:, :7], state.qd[:, :7], self.mj_body_positions(state).flatten(1)), -1)
+
+    def _reward(self, before, after, ctrl):
+        tip, obj, goal = self.mj_body_positions(after).unbind(1)
+        return -(obj - goal).norm(dim=-1) - 0.1 * (ctrl * ctrl).sum(-1) - 0.5 * (tip - obj).norm(dim=-1)

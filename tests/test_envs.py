@@ -1,0 +1,279 @@
+"""The TorchRL environment suite: specs, batching, partial and native resets, rewards, bad input, randomisation."""
+
+import math
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+from tensordict import TensorDict
+from torchrl.collectors import Collector
+from torchrl.envs.utils import check_env_specs
+
+import torchsim
+import torchsim.envs as envs
+
+NAMES = envs.list()
+
+
+def test_list_and_make():
+    assert NAMES == ["ant", "halfcheetah", "humanoid", "reacher", "hopper", "walker2d", "inverted_pendulum",
+                     "inverted_double_pendulum", "pusher"]
+    with pytest.raises(ValueError, match="unknown env 'antt'.*ant, halfcheetah"):
+        envs.make("antt")
+    env = envs.make("hopper", num_envs=3)
+    assert isinstance(env, envs.Hopper) and env.batch_size == (3,)
+
+
+# The API test runs the physics at substeps of at most 2.5 ms instead of the models' 0.5 ms default: it checks the
+# env machinery, not accuracy, and eager mode pays per substep (CI time). Stability and accuracy at the default
+# substeps are tested per model in test_models.py.
+API_SUBSTEP = 2.5e-3
+
+
+@pytest.mark.parametrize("name", NAMES)
+def test_env_api(name):
+    """check_env_specs; a 100-step random rollout with per-env partial resets stays finite; the Collector runs."""
+    torch.manual_seed(0)
+    timestep = envs.make(name).sys.timestep
+    env = envs.make(name, num_envs=15, episode_length=7, substeps=math.ceil(timestep / API_SUBSTEP - 1e-9))
+    check_env_specs(env, break_when_any_done="both")
+    for spec in (env.observation_spec["observation"], env.action_spec, env.reward_spec, env.full_done_spec["done"]):
+        assert spec.shape[0] == 15
+
+    rollout = env.rollout(100, break_when_any_done=False)
+    assert rollout.batch_size == (15, 100)
+    for key in ("observation", ("next", "observation"), ("next", "reward")):
+        assert torch.isfinite(rollout[key]).all(), key
+    done = rollout["next", "done"].squeeze(-1)
+    assert (done == (rollout["next", "terminated"] | rollout["next", "truncated"]).squeeze(-1)).all()
+    # No episode outlives the limit, and every episode after a done starts afresh (step counter restarted).
+    steps_since_reset = torch.zeros(15, dtype=torch.long)
+    for t in range(100):
+        steps_since_reset += 1
+        assert (rollout["next", "truncated"][:, t, 0] == (steps_since_reset == 7)).all()
+        steps_since_reset = torch.where(done[:, t], 0, steps_since_reset)
+    # Fresh noise per episode: first observations of consecutive episodes of env 0 differ.
+    starts = torch.cat((torch.tensor([0]), torch.nonzero(done[0, :-1]).flatten() + 1))
+    first_obs = rollout["observation"][0, starts]
+    assert len(starts) >= 2 and not torch.allclose(first_obs[0], first_obs[1])
+
+    collector = Collector(env, policy=None, frames_per_batch=30, total_frames=60)
+    batches = [batch for batch in collector]
+    collector.shutdown()
+    assert len(batches) == 2 and batches[0].batch_size == (15, 2)
+
+
+def _random_start(env, n, seed):
+    torch.manual_seed(seed)
+    return env._sample_init(n)
+
+
+@pytest.mark.parametrize("name", ["ant", "reacher"])
+def test_batch_independence(name):
+    """Env i of a batch of 8 follows the trajectory it follows alone (same start, same actions; float64)."""
+    batch = envs.make(name, num_envs=8, dtype=torch.float64)
+    q, qd = _random_start(batch, 8, seed=1)
+    actions = 2 * torch.rand(3, 8, batch.sys.nu, dtype=torch.float64) - 1
+    obs_batch = _run(batch, q, qd, actions)
+    i = 5
+    alone = envs.make(name, num_envs=1, dtype=torch.float64)
+    obs_alone = _run(alone, q[i:i + 1], qd[i:i + 1], actions[:, i:i + 1])
+    torch.testing.assert_close(obs_batch[:, i:i + 1], obs_alone, atol=1e-6, rtol=0)
+
+
+def _run(env, q, qd, actions):
+    env.set_state(q, qd)
+    out = []
+    for a in actions:
+        td = env.step(TensorDict(action=a, batch_size=env.batch_size))
+        out.append(td["next", "observation"])
+    return torch.stack(out)
+
+
+def _states(env, q_before, q_after, qd=None):
+    """States ``before``/``after`` built from generalized coordinates (batch 1, float64)."""
+    as_t = lambda x: torch.as_tensor(np.asarray(x), dtype=torch.float64)[None]  # noqa: E731
+    qd = torch.zeros(1, env.sys.nv, dtype=torch.float64) if qd is None else as_t(qd)
+    return torchsim.init(env.sys, as_t(q_before), qd), torchsim.init(env.sys, as_t(q_after), qd)
+
+
+def _ctrl(env, action):
+    return env._ctrl(torch.as_tensor(np.asarray(action), dtype=torch.float64).expand(1, env.sys.nu))
+
+
+def test_locomotion_rewards_and_terminations():
+    ant = envs.make("ant", dtype=torch.float64)
+    q0 = ant.init_q.numpy()
+    moved = q0.copy()
+    moved[0] += 1.0 * ant.dt  # 1 m/s forward over one env step
+    before, after = _states(ant, q0, moved)
+    assert ant._reward(before, after, _ctrl(ant, 0.0)).item() == pytest.approx(2.0, abs=1e-9)  # vx + 1
+    assert ant._reward(before, after, _ctrl(ant, 1.0)).item() == pytest.approx(2.0 - 0.5 * 8, abs=1e-9)
+    for z, ended in ((0.55, False), (0.15, True), (1.05, True)):
+        q = q0.copy()
+        q[2] = z
+        assert bool(ant._terminated(_states(ant, q, q)[0])) == ended, z
+
+    cheetah = envs.make("halfcheetah", dtype=torch.float64)
+    q0 = cheetah.init_q.numpy()
+    moved = q0.copy()
+    moved[0] += 2.0 * cheetah.dt
+    before, after = _states(cheetah, q0, moved)
+    assert cheetah._reward(before, after, _ctrl(cheetah, 1.0)).item() == pytest.approx(2.0 - 0.1 * 6, abs=1e-9)
+    assert not cheetah._terminated(after).item()
+
+    hopper = envs.make("hopper", dtype=torch.float64)
+    q0 = hopper.init_q.numpy()
+    assert not hopper._terminated(_states(hopper, q0, q0)[0]).item()
+    for index, value in ((1, 0.6), (2, 0.3), (2, -0.3)):  # fallen (torso below 0.7 m) or tilted beyond 0.2 rad
+        q = q0.copy()
+        q[index] = value
+        assert hopper._terminated(_states(hopper, q, q)[0]).item(), (index, value)
+    moved = q0.copy()
+    moved[0] += hopper.dt
+    before, after = _states(hopper, q0, moved)
+    assert hopper._reward(before, after, _ctrl(hopper, 0.0)).item() == pytest.approx(2.0, abs=1e-9)
+
+    walker = envs.make("walker2d", dtype=torch.float64)
+    q0 = walker.init_q.numpy()
+    assert not walker._terminated(_states(walker, q0, q0)[0]).item()
+    for index, value in ((1, 0.7), (1, 2.1), (2, 1.1)):
+        q = q0.copy()
+        q[index] = value
+        assert walker._terminated(_states(walker, q, q)[0]).item(), (index, value)
+
+    humanoid = envs.make("humanoid", dtype=torch.float64)
+    q0 = humanoid.init_q.numpy()
+    moved = q0.copy()
+    moved[0] += humanoid.dt  # the whole body moves 1 m/s: its COM does too
+    before, after = _states(humanoid, q0, moved)
+    assert humanoid._reward(before, after, _ctrl(humanoid, 0.0)).item() == pytest.approx(1.25 + 5.0, abs=1e-9)
+    assert not humanoid._terminated(before).item()
+    q = q0.copy()
+    q[2] = 0.9
+    assert humanoid._terminated(_states(humanoid, q, q)[0]).item()
+
+
+def test_humanoid_observation_matches_mujoco():
+    """COM-based inertia, COM velocity and actuator forces equal MuJoCo's cinert, cvel and qfrc_actuator."""
+    env = envs.make("humanoid", dtype=torch.float64)
+    m, d = env.mj_model, mujoco.MjData(env.mj_model)
+    rng = np.random.default_rng(0)
+    q = env.init_q.numpy() + rng.uniform(-0.3, 0.3, m.nq)
+    q[3:7] /= np.linalg.norm(q[3:7])
+    qd, ctrl = rng.normal(size=m.nv), rng.uniform(-0.4, 0.4, m.nu)
+    d.qpos[:], d.qvel[:], d.ctrl[:] = q, qd, ctrl
+    mujoco.mj_forward(m, d)
+    state = torchsim.init(env.sys, torch.tensor(q)[None], torch.tensor(qd)[None])
+    obs = env._observation(state, torch.tensor(ctrl)[None])[0].numpy()
+    expected = np.concatenate((d.qpos[2:], d.qvel, d.cinert[1:].ravel(), d.cvel[1:].ravel(), d.qfrc_actuator))
+    np.testing.assert_allclose(obs, expected, atol=1e-9)
+
+
+def _mj_positions(env, q, names):
+    m, d = env.mj_model, mujoco.MjData(env.mj_model)
+    d.qpos[:] = q
+    mujoco.mj_kinematics(m, d)
+    return [d.xpos[mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_BODY, n)].copy() for n in names]
+
+
+def test_arm_and_pendulum_rewards_and_terminations():
+    rng = np.random.default_rng(1)
+    reacher = envs.make("reacher", dtype=torch.float64)
+    q = np.array([0.3, -0.5, 0.1, -0.05])
+    tip, target = _mj_positions(reacher, q, ["fingertip", "target"])
+    action = rng.uniform(-1, 1, 2)
+    state = _states(reacher, q, q)[0]
+    expected = -np.linalg.norm(tip - target) - (action ** 2).sum()
+    assert reacher._reward(state, state, _ctrl(reacher, action)).item() == pytest.approx(expected, abs=1e-9)
+    obs = reacher._observation(state, _ctrl(reacher, action))[0].numpy()
+    np.testing.assert_allclose(obs[-3:], tip - target, atol=1e-9)
+
+    pusher = envs.make("pusher", dtype=torch.float64)
+    q = pusher.init_q.numpy() + rng.uniform(-0.2, 0.2, pusher.sys.nq)
+    tip, obj, goal = _mj_positions(pusher, q, ["tips_arm", "object", "goal"])
+    action = rng.uniform(-1, 1, 7)
+    ctrl = _ctrl(pusher, action)
+    state = _states(pusher, q, q)[0]
+    expected = -np.linalg.norm(obj - goal) - 0.1 * (ctrl.numpy() ** 2).sum() - 0.5 * np.linalg.norm(tip - obj)
+    assert pusher._reward(state, state, ctrl).item() == pytest.approx(expected, abs=1e-9)
+    starts, _ = pusher._sample_init(256)
+    assert ((starts[:, -4:-2] - starts[:, -2:]).norm(dim=-1) >= 0.17 - 1e-9).all()
+
+    pendulum = envs.make("inverted_pendulum", dtype=torch.float64)
+    for angle, ended in ((0.1, False), (0.25, True), (-0.25, True)):
+        state = _states(pendulum, [0.0, angle], [0.0, angle])[0]
+        assert pendulum._terminated(state).item() == ended
+        assert pendulum._reward(state, state, _ctrl(pendulum, 0.0)).item() == 1.0
+
+    double = envs.make("inverted_double_pendulum", dtype=torch.float64)
+    upright = _states(double, [0.0, 0.0, 0.0], [0.0, 0.0, 0.0])[0]
+    tip_z = double._tip(upright)[0, 2].item()
+    assert tip_z > 1.0 and not double._terminated(upright).item()
+    assert double._reward(upright, upright, _ctrl(double, 0.0)).item() == pytest.approx(10.0 - (tip_z - 2.0) ** 2)
+    fallen = _states(double, [0.0, 1.5, 0.0], [0.0, 1.5, 0.0])[0]
+    assert double._terminated(fallen).item()
+
+
+def test_bad_actions():
+    env = envs.make("hopper", num_envs=4)
+    td = env.reset()
+    for bad, match in ((torch.zeros(4, 2), r"shape \(4, 3\)"), (torch.zeros(4, 3, dtype=torch.float64), "dtype"),
+                       (torch.zeros(3, 3), r"shape \(4, 3\)")):
+        with pytest.raises(ValueError, match=match):
+            env._step(td.clone().set("action", bad) if bad.shape[0] == 4 else TensorDict(action=bad))
+    # Out-of-range actions are clipped to the action spec's [-1, 1].
+    q, qd = env._sample_init(4)
+    clipped = _run(env, q, qd, torch.full((2, 4, 3), 1.0))
+    beyond = _run(env, q, qd, torch.full((2, 4, 3), 5.0))
+    torch.testing.assert_close(clipped, beyond, atol=0, rtol=0)
+
+
+def test_diverging_env_is_contained():
+    """A NaN action in env 2 flags that env (terminated, reward 0, state frozen); the others are unaffected."""
+    env = envs.make("hopper", num_envs=4, dtype=torch.float64)
+    q, qd = _random_start(env, 4, seed=3)
+    actions = 2 * torch.rand(2, 4, 3, dtype=torch.float64) - 1
+    clean = _run(env, q, qd, actions)
+    poisoned_actions = actions.clone()
+    poisoned_actions[:, 2] = float("nan")
+    env.set_state(q, qd)
+    td = env.step(TensorDict(action=poisoned_actions[0], batch_size=[4]))
+    assert td["next", "terminated"][2, 0] and td["next", "done"][2, 0] and env.state.diverged.tolist() == [0, 0, 1, 0]
+    assert td["next", "reward"][2, 0] == 0.0 and torch.isfinite(td["next", "observation"]).all()
+    torch.testing.assert_close(td["next", "observation"][[0, 1, 3]], clean[0][[0, 1, 3]], atol=0, rtol=0)
+
+
+def test_domain_randomisation_is_per_env():
+    """Per-env mass, friction and actuator gain: env i of the batch matches a single env with env i's values."""
+    scales = {"mass_scale": torch.tensor([1.0, 1.5, 0.7]), "friction_scale": torch.tensor([1.0, 0.2, 2.0]),
+              "actuator_gain_scale": torch.tensor([1.0, 0.5, 1.3])}
+    batch = envs.make("hopper", num_envs=3, dtype=torch.float64)
+    batch.set_physics(**{k: v.double() for k, v in scales.items()})
+    q, qd = _random_start(batch, 3, seed=4)
+    actions = 2 * torch.rand(3, 3, 3, dtype=torch.float64) - 1
+    obs = _run(batch, q, qd, actions)
+    assert not torch.allclose(obs[:, 0], obs[:, 1])
+    alone = envs.make("hopper", num_envs=1, dtype=torch.float64)
+    alone.set_physics(**{k: float(v[1]) for k, v in scales.items()})
+    torch.testing.assert_close(_run(alone, q[1:2], qd[1:2], actions[:, 1:2]), obs[:, 1:2], atol=1e-9, rtol=0)
+    with pytest.raises(ValueError, match="unknown physics parameter"):
+        batch.set_physics(gravity_scale=2.0)
+
+
+def test_native_autoreset_is_one_graph_and_resets_done_rows():
+    env = envs.make("inverted_pendulum", num_envs=4, native_autoreset=True, episode_length=2, substeps=2)
+    td = env.reset()
+    td["action"] = env.action_spec.rand()
+    explanation = torch._dynamo.explain(env._step_and_maybe_reset)(td)
+    assert explanation.graph_count == 1 and explanation.graph_break_count == 0, explanation.break_reasons
+    env.reset()
+    td = env.reset()
+    for t in range(2):
+        td["action"] = torch.zeros(4, 1)
+        out, td = env.step_and_maybe_reset(td)
+    # Every env hit the 2-step limit: the "next" observation is invalid (NaN), the root one is a fresh episode.
+    assert out["next", "truncated"].all() and torch.isnan(out["next", "observation"]).all()
+    assert torch.isfinite(td["observation"]).all() and not td["done"].any()
+    assert (env.step_count == 0).all()
