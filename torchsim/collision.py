@@ -146,7 +146,7 @@ def contacts(sys: System, bodies: Bodies) -> Contacts:
         poses = []
         for geom in (group.geom_a, group.geom_b):
             body = sys.geom_body[geom]
-            x, q = bodies.x_pos[:, body], bodies.x_quat[:, body]
+            x, q = bodies.x_pos.index_select(1, body), bodies.x_quat.index_select(1, body)
             poses += [x + math.quat_rotate(q, sys.geom_pos[geom]), math.quat_mul(q, sys.geom_quat[geom]),
                       sys.geom_size[geom].expand(x.shape[0], -1, -1)]
         pt, n, dist = _pair_contacts(group.kind, *poses)

@@ -27,7 +27,7 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     joint = sys.dof_flat // 6
     slot = (sys.dof_flat % 6 - 3).clamp_min(0)
     child, parent = sys.jnt_child[joint], sys.jnt_parent[joint]
-    g = math.inv3(frames.axes[..., 3:, :].transpose(-1, -2))  # (B, J, 3, 3): row k maps a rotation to slot k
+    g = frames.hinge_dual
     hinge = sys.dof_is_hinge
     u = torch.where(hinge[:, None], g[:, joint, slot], 0.0)  # (B, D, 3)
     n_ext, n_dof = bodies.x_pos.shape[1], u.shape[1]
@@ -41,7 +41,7 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     inertia = armature + torch.where(hinge, damping_h, 0.0)
     mask = (inertia > 0).to(u.dtype)
     compliance = mask / inertia.clamp_min(1e-30)
-    qd_raw = (u * (bodies.xd_ang[:, child] - bodies.xd_ang[:, parent])).sum(-1)
+    qd_raw = (u * (bodies.xd_ang.index_select(1, child) - bodies.xd_ang.index_select(1, parent))).sum(-1)
     rhs = mask * (compliance * armature * qd_ref - qd_raw)
     mat = mask[..., :, None] * a * mask[..., None, :] + torch.diag_embed(compliance + 1.0 - mask).expand_as(a)
     mu = torch.linalg.solve(mat, rhs)

@@ -36,6 +36,8 @@ class JointFrames(NamedTuple):
         ang_proj: (B, J, 3, 3) world projector onto the constrained rotation directions.
         quat_rel: (B, J, 4) child orientation relative to its zero frame (a ball joint's qpos).
         ang_rel: (B, J, 3) child angular velocity relative to the parent, child frame (a ball joint's qvel).
+        hinge_dual: (B, J, 3, 3) inverse of the hinge axes as columns: row k maps a relative rotation (world) onto
+            hinge slot k (measured once here because the joint-space solves need it too).
     """
 
     q: torch.Tensor
@@ -49,6 +51,7 @@ class JointFrames(NamedTuple):
     ang_proj: torch.Tensor
     quat_rel: torch.Tensor
     ang_rel: torch.Tensor
+    hinge_dual: torch.Tensor
 
 
 def with_world(x_pos, x_quat, xd_vel, xd_ang) -> Bodies:
@@ -76,22 +79,25 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     """Measure the joints ``joints (K,)`` (default: all) from ext body states (see :class:`JointFrames`).
 
     With ``coordinates=False`` only the constraint fields are computed (``q``, ``qd``, ``axes``, ``quat_rel``,
-    ``ang_rel`` are None). Work for joint kinds absent from the model is skipped (``sys.jnt_kinds``, static).
+    ``ang_rel``, ``hinge_dual`` are None). Work for joint kinds absent from the model is skipped (``sys.jnt_kinds``, static).
     """
 
     def sel(t):
-        return t if joints is None else t[joints]
+        return t if joints is None else t.index_select(0, joints)
 
     weld, one, two, three, _ = sys.jnt_kinds
-    xp, qp, vp, wp = (t[:, sel(sys.jnt_parent)] for t in bodies)
-    xc, qc, vc, wc = (t[:, sel(sys.jnt_child)] for t in bodies)
+    xp, qp, vp, wp = (t.index_select(1, sel(sys.jnt_parent)) for t in bodies)
+    xc, qc, vc, wc = (t.index_select(1, sel(sys.jnt_child)) for t in bodies)
     quat0 = math.quat_mul(qp, sel(sys.jnt_quat0))  # zero frame of the child, in the world
     r_parent = math.quat_rotate(qp, sel(sys.jnt_anchor_parent))
     r_child = math.quat_rotate(qc, sel(sys.jnt_anchor_child))
     delta = (xc + r_child) - (xp + r_parent)
     mode = sel(sys.jnt_mode)[..., None]  # (J, 5, 1): weld, 1, 2, 3 hinges, ball
-    a1, a2, a3 = sel(sys.jnt_axes).unbind(-2)
-    eye = torch.eye(3, dtype=xp.dtype, device=xp.device)
+    axes = sel(sys.jnt_axes)
+    a1, a2, a3 = axes.unbind(-2)
+    axes0 = math.quat_rotate(quat0.unsqueeze(-2), axes)  # (B, J, 3, 3): a1..a3 in the zero frame, world
+    axes_c = math.quat_rotate(qc.unsqueeze(-2), axes)  # a1..a3 turning with the child, world
+    eye = math.eye3(xp)
     zero3 = torch.zeros_like(delta)
 
     # constraint errors: the anchor offset along constrained directions, and the rotation out of the hinge axes
@@ -101,14 +107,13 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
         lin_err = math.matvec(lin_proj, delta)
     else:
         lin_proj, lin_err = eye.expand(delta.shape + (3,)), delta
-    a1_w = math.quat_rotate(quat0, a1)
-    a2_c = math.quat_rotate(qc, a2) if (two or three) else zero3
+    a1_w, a2_c = axes0[..., 0, :], axes_c[..., 1, :]
     ang_err, ang_proj = zero3, torch.zeros_like(lin_proj)
     if weld:
         ang_err = ang_err + mode[:, 0] * math.quat_to_rot_vec(math.quat_mul(qc, math.quat_conj(quat0)))
         ang_proj = ang_proj + mode[:, 0, None] * eye
     if one:
-        ang_err = ang_err + mode[:, 1] * math.cross(a1_w, math.quat_rotate(qc, a1))
+        ang_err = ang_err + mode[:, 1] * math.cross(a1_w, axes_c[..., 0, :])
         ang_proj = ang_proj + mode[:, 1, None] * (eye - _outer(a1_w))
     n12 = math.normalize(math.cross(a1_w, a2_c)) if two else zero3
     if two:
@@ -116,7 +121,7 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
         ang_err = ang_err - mode[:, 2] * tilt * n12
         ang_proj = ang_proj + mode[:, 2, None] * _outer(n12)
     if not coordinates:
-        return JointFrames(None, None, None, r_parent, r_child, lin_err, lin_proj, ang_err, ang_proj, None, None)
+        return JointFrames(None, None, None, r_parent, r_child, lin_err, lin_proj, ang_err, ang_proj, None, None, None)
 
     # hinge coordinates: decompose the relative rotation about the joint's axes (a1 parent-fixed, last child-fixed)
     quat_rel = math.quat_mul(math.quat_conj(quat0), qc)
@@ -126,8 +131,10 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     q1 = (mode[:, 1, 0] + mode[:, 2, 0]) * math.angle_about(a1, a2, r_a2)  # 1 hinge: a2 is a perpendicular of a1
     q2 = mode[:, 2, 0] * -math.angle_about(a2, a1, rt_a1) if two else q1 * 0
     q3 = q1 * 0
-    col2 = (1 - mode[:, 2] - mode[:, 3]) * math.quat_rotate(quat0, a2) + mode[:, 2] * a2_c
-    col3 = (1 - mode[:, 2] - mode[:, 3]) * math.quat_rotate(quat0, a3) + mode[:, 2] * n12
+    hinge_axes = axes0  # rows; the zero frame's axes, except for 2 and 3 hinges:
+    if two or three:
+        col2 = (1 - mode[:, 2] - mode[:, 3]) * axes0[..., 1, :] + mode[:, 2] * a2_c
+        col3 = (1 - mode[:, 2] - mode[:, 3]) * axes0[..., 2, :] + mode[:, 2] * n12
     if three:
         handed = sel(sys.jnt_a2_sign)
         r_a3 = math.quat_rotate(quat_rel, a3)
@@ -136,11 +143,13 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
         q1 = q1 + m3 * math.angle_about(a1, _rotate_about(a2, a3, mid), r_a3)
         q2 = q2 + m3 * mid
         q3 = m3 * -math.angle_about(a3, _rotate_about(a2, a1, -mid), rt_a1)
-        a3_c = math.quat_rotate(qc, a3)
+        a3_c = axes_c[..., 2, :]
         col2 = col2 + mode[:, 3] * handed[:, None] * math.normalize(math.cross(a3_c, a1_w))
         col3 = col3 + mode[:, 3] * a3_c
-    hinge_axes = torch.stack((a1_w, col2, col3), -2)  # rows
-    qd_hinge = math.matvec(math.inv3(hinge_axes.transpose(-1, -2)), ang_rel_w)
+    if two or three:
+        hinge_axes = torch.stack((a1_w, col2, col3), -2)
+    hinge_dual = math.inv3(hinge_axes.transpose(-1, -2))
+    qd_hinge = math.matvec(hinge_dual, ang_rel_w)
 
     # slides: the anchor offset in the zero frame, mapped onto the slide axes
     if sys.jnt_has_slides:
@@ -157,14 +166,14 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
         q=torch.cat((q_slide, torch.stack((q1, q2, q3), -1)), -1), qd=torch.cat((qd_slide, qd_hinge), -1),
         axes=torch.cat((slide_axes, hinge_axes), -2),
         r_parent=r_parent, r_child=r_child, lin_err=lin_err, lin_proj=lin_proj, ang_err=ang_err, ang_proj=ang_proj,
-        quat_rel=quat_rel, ang_rel=math.quat_rotate_inv(qc, ang_rel_w),
+        quat_rel=quat_rel, ang_rel=math.quat_rotate_inv(qc, ang_rel_w), hinge_dual=hinge_dual,
     )
 
 
 def dof_values(sys: System, per_joint: torch.Tensor) -> torch.Tensor:
     """Gather ``(B, J, 6, ...)`` joint-slot values into ``(B, D, ...)`` dof values."""
     flat = per_joint.reshape(per_joint.shape[0], -1, *per_joint.shape[3:])
-    return flat[:, sys.dof_flat]
+    return flat.index_select(1, sys.dof_flat)
 
 
 def read_q(sys: System, bodies: Bodies, frames: JointFrames):

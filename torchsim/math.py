@@ -46,7 +46,7 @@ def _skew_table() -> torch.Tensor:
 
 
 _TABLES = {"quat_product": _quat_product_table(), "rotation": _rotation_table(), "skew": _skew_table(),
-           "conj": torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=torch.float64)}
+           "conj": torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=torch.float64), "eye3": torch.eye(3, dtype=torch.float64)}
 _CACHE: dict = {}
 
 
@@ -56,6 +56,11 @@ def _table(name: str, like: torch.Tensor) -> torch.Tensor:
     if key not in _CACHE:
         _CACHE[key] = _TABLES[name].to(dtype=like.dtype, device=like.device)
     return _CACHE[key]
+
+
+def eye3(like: torch.Tensor) -> torch.Tensor:
+    """The 3x3 identity in ``like``'s dtype and device (a cached constant, not rebuilt every call)."""
+    return _table("eye3", like)
 
 
 def cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

@@ -34,7 +34,7 @@ def inverse_inertia(sys: System, x_quat: torch.Tensor, inv_inertia_body: torch.T
 
 def gather(inv: InverseInertia, idx: torch.Tensor):
     """Inverse mass ``(..., K, 1)`` and inverse inertia ``(B, K, 3, 3)`` of the bodies ``idx (K,)``."""
-    return inv.mass[..., idx, None], inv.inertia[:, idx]
+    return inv.mass.index_select(-1, idx)[..., None], inv.inertia.index_select(1, idx)
 
 
 def point_inverse_mass(inv: InverseInertia, idx: torch.Tensor, r: torch.Tensor, direction: torch.Tensor):
@@ -75,7 +75,7 @@ def apply_pair_position(bodies: Bodies, inv: InverseInertia, a, b, r_a, r_b, p_l
     def quat_delta(theta, quat):
         return 0.5 * math.quat_mul(torch.cat((torch.zeros_like(theta[..., :1]), theta), -1), quat)
 
-    quat = scatter_pair(bodies.x_quat, a, b, quat_delta(dth_a, bodies.x_quat[:, a]), quat_delta(dth_b, bodies.x_quat[:, b]))
+    quat = scatter_pair(bodies.x_quat, a, b, quat_delta(dth_a, bodies.x_quat.index_select(1, a)), quat_delta(dth_b, bodies.x_quat.index_select(1, b)))
     return bodies._replace(x_pos=scatter_pair(bodies.x_pos, a, b, dx_a, dx_b), x_quat=math.normalize(quat))
 
 
@@ -83,7 +83,7 @@ def active_count(a, b, active: torch.Tensor, num_ext: int):
     """Per-contact ``1 / (active contacts on its body)`` for bodies a and b: Jacobi averaging of contact impulses."""
     count = active.new_zeros(active.shape[0], num_ext).index_add(1, a, active).index_add(1, b, active)
     count = count.clamp_min(1.0)
-    return 1.0 / count[:, a], 1.0 / count[:, b]
+    return 1.0 / count.index_select(1, a), 1.0 / count.index_select(1, b)
 
 
 def dof_bodies(sys: System):
@@ -108,7 +108,7 @@ def dof_rate_change(sys: System, axes: torch.Tensor, before: Bodies, after: Bodi
     d_ang = after.xd_ang - before.xd_ang
     d_vel = after.xd_vel - before.xd_vel
     hinge = sys.dof_is_hinge[:, None]
-    rel = torch.where(hinge, d_ang[:, child] - d_ang[:, parent], d_vel[:, child] - d_vel[:, parent])
+    rel = torch.where(hinge, d_ang.index_select(1, child) - d_ang.index_select(1, parent), d_vel.index_select(1, child) - d_vel.index_select(1, parent))
     return (axes * rel).sum(-1)
 
 
@@ -120,7 +120,7 @@ def apply_dof_impulse(sys: System, bodies: Bodies, inv: InverseInertia, axes: to
     p = impulse[..., None] * axes
     hinge = sys.dof_is_hinge[:, None]
     zero = torch.zeros_like(p)
-    arm = bodies.x_pos[:, child] - bodies.x_pos[:, parent]
+    arm = bodies.x_pos.index_select(1, child) - bodies.x_pos.index_select(1, parent)
     apply = apply_pair_position if position else apply_pair_velocity
     return apply(bodies, inv, child, parent, zero, arm, torch.where(hinge, zero, p), torch.where(hinge, p, zero))
 
@@ -134,7 +134,7 @@ def dof_wrench(sys: System, bodies: Bodies, axes: torch.Tensor, tau: torch.Tenso
     hinge = sys.dof_is_hinge[:, None]
     lin = torch.where(hinge, 0.0, wrench)
     ang = torch.where(hinge, wrench, 0.0)
-    arm = bodies.x_pos[:, child] - bodies.x_pos[:, parent]
+    arm = bodies.x_pos.index_select(1, child) - bodies.x_pos.index_select(1, parent)
     zero = torch.zeros_like(bodies.x_pos)
     force = scatter_pair(zero, child, parent, lin, -lin)
     torque = scatter_pair(zero, child, parent, ang, -ang - math.cross(arm, lin))

@@ -41,9 +41,9 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.Invers
     eye = torch.eye(3, dtype=m_c.dtype, device=m_c.device)
     gain_lin = _subspace_inverse((m_c + m_p)[..., None] * eye - s_c @ i_c @ s_c - s_p @ i_p @ s_p, fr.lin_proj)
     gain_ang = _subspace_inverse(i_c + i_p, fr.ang_proj)
-    v_anchor = (bodies.xd_vel[:, child] + math.cross(bodies.xd_ang[:, child], fr.r_child)
-                - bodies.xd_vel[:, parent] - math.cross(bodies.xd_ang[:, parent], fr.r_parent))
-    w_rel = bodies.xd_ang[:, child] - bodies.xd_ang[:, parent]
+    v_anchor = (bodies.xd_vel.index_select(1, child) + math.cross(bodies.xd_ang.index_select(1, child), fr.r_child)
+                - bodies.xd_vel.index_select(1, parent) - math.cross(bodies.xd_ang.index_select(1, parent), fr.r_parent))
+    w_rel = bodies.xd_ang.index_select(1, child) - bodies.xd_ang.index_select(1, parent)
     kappa, zeta = sys.joint_stiffness / (h * h), sys.joint_damping / h
     force = -math.matvec(gain_lin, kappa * fr.lin_err + zeta * v_anchor)
     torque = -math.matvec(gain_ang, kappa * fr.ang_err + zeta * w_rel)
@@ -65,10 +65,10 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: 
     """Velocity impulses stopping approach and separating at ``depth / contact_timeconst``, Coulomb-capped friction."""
     con = contacts(sys, bodies)
     a, b = con.body_a, con.body_b
-    r_a = con.pos - bodies.x_pos[:, a]
-    r_b = con.pos - bodies.x_pos[:, b]
-    v_rel = (bodies.xd_vel[:, a] + math.cross(bodies.xd_ang[:, a], r_a)
-             - bodies.xd_vel[:, b] - math.cross(bodies.xd_ang[:, b], r_b))
+    r_a = con.pos - bodies.x_pos.index_select(1, a)
+    r_b = con.pos - bodies.x_pos.index_select(1, b)
+    v_rel = (bodies.xd_vel.index_select(1, a) + math.cross(bodies.xd_ang.index_select(1, a), r_a)
+             - bodies.xd_vel.index_select(1, b) - math.cross(bodies.xd_ang.index_select(1, b), r_b))
     v_n = math.dot(v_rel, con.normal)
     active = (con.depth > 0).to(con.depth.dtype)
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)

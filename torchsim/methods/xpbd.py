@@ -46,7 +46,7 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         violation = torch.where(has_dof & sys.dof_limited[dof], torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0), 0.0)
         mode = sys.jnt_mode[colour]
         hard = (mode[:, :3] @ torch.tensor([[1.0, 1, 1], [0, 1, 1], [0, 0, 1]], dtype=mode.dtype, device=mode.device)) > 0
-        g = math.inv3(fr.axes[..., 3:, :].transpose(-1, -2))
+        g = fr.hinge_dual
         error = torch.where(hard, math.matvec(g, fr.ang_err), violation)
         mask = (hard | (violation != 0)).to(q.dtype)
         p_m = torch.diag_embed(mask)
@@ -89,16 +89,16 @@ def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.I
     """
     con = contacts(sys, bodies)
     a, b = con.body_a, con.body_b
-    r_a = con.pos - bodies.x_pos[:, a]
-    r_b = con.pos - bodies.x_pos[:, b]
+    r_a = con.pos - bodies.x_pos.index_select(1, a)
+    r_b = con.pos - bodies.x_pos.index_select(1, b)
     active = (con.depth > 0).to(con.depth.dtype)
     scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[1])
     scale_a, scale_b = scale_a[..., None], scale_b[..., None]
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
     lam_n = active * con.depth / w_n
     # where the contact point was at the start of the substep, on each body
-    prev_a = previous.x_pos[:, a] + math.quat_rotate(previous.x_quat[:, a], math.quat_rotate_inv(bodies.x_quat[:, a], r_a))
-    prev_b = previous.x_pos[:, b] + math.quat_rotate(previous.x_quat[:, b], math.quat_rotate_inv(bodies.x_quat[:, b], r_b))
+    prev_a = previous.x_pos.index_select(1, a) + math.quat_rotate(previous.x_quat.index_select(1, a), math.quat_rotate_inv(bodies.x_quat.index_select(1, a), r_a))
+    prev_b = previous.x_pos.index_select(1, b) + math.quat_rotate(previous.x_quat.index_select(1, b), math.quat_rotate_inv(bodies.x_quat.index_select(1, b), r_b))
     slip = prev_b - prev_a  # (p - prev_a) - (p - prev_b)
     slip = slip - math.dot(slip, con.normal) * con.normal
     slip_len = math.safe_norm(slip)
@@ -114,10 +114,10 @@ def stop_contacts(bodies: Bodies, inv: rigid.InverseInertia, con, active, scale_
     """Velocity pass: active contacts end the substep with zero normal velocity (inelastic, MuJoCo has no
     restitution); without it, depenetration would turn into a launch speed ``depth / h``."""
     a, b = con.body_a, con.body_b
-    r_a = con.pos - bodies.x_pos[:, a]
-    r_b = con.pos - bodies.x_pos[:, b]
-    v_rel = (bodies.xd_vel[:, a] + math.cross(bodies.xd_ang[:, a], r_a)
-             - bodies.xd_vel[:, b] - math.cross(bodies.xd_ang[:, b], r_b))
+    r_a = con.pos - bodies.x_pos.index_select(1, a)
+    r_b = con.pos - bodies.x_pos.index_select(1, b)
+    v_rel = (bodies.xd_vel.index_select(1, a) + math.cross(bodies.xd_ang.index_select(1, a), r_a)
+             - bodies.xd_vel.index_select(1, b) - math.cross(bodies.xd_ang.index_select(1, b), r_b))
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
     p_lin = (-active * (v_rel * con.normal).sum(-1) / w_n)[..., None] * con.normal
     return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
