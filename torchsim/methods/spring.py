@@ -23,8 +23,7 @@ def _gains(sys: System, inv_mass: torch.Tensor, h: float):
 
 def _subspace_inverse(k: torch.Tensor, proj: torch.Tensor) -> torch.Tensor:
     """``(P K P)^+`` restricted to the subspace of projector ``P`` (identity added on its complement)."""
-    eye = torch.eye(3, dtype=k.dtype, device=k.device)
-    return proj @ math.inv3(proj @ k @ proj + (eye - proj)) @ proj
+    return proj @ math.inv3(proj @ k @ proj + (math.eye3(k) - proj)) @ proj
 
 
 def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.InverseInertia, h: float):
@@ -33,24 +32,30 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.Invers
     Gains are matrices, ``kappa / h^2 K^-1`` and ``zeta / h K^-1`` with ``K`` the joint's inverse-inertia block in
     its constrained directions: every direction is corrected by the same fraction per substep, so thin links
     (a capsule's small inertia about its axis) stay inside the explicit stability limit.
+
+    Child and parent (and the translation and rotation springs) are stacked on axis 1 so that each step of the
+    computation is one batched op.
     """
     child, parent = sys.jnt_child, sys.jnt_parent
-    m_c, i_c = rigid.gather(inv, child)
-    m_p, i_p = rigid.gather(inv, parent)
-    s_c, s_p = math.skew(fr.r_child), math.skew(fr.r_parent)
-    eye = torch.eye(3, dtype=m_c.dtype, device=m_c.device)
-    gain_lin = _subspace_inverse((m_c + m_p)[..., None] * eye - s_c @ i_c @ s_c - s_p @ i_p @ s_p, fr.lin_proj)
-    gain_ang = _subspace_inverse(i_c + i_p, fr.ang_proj)
-    v_anchor = (bodies.xd_vel.index_select(1, child) + math.cross(bodies.xd_ang.index_select(1, child), fr.r_child)
-                - bodies.xd_vel.index_select(1, parent) - math.cross(bodies.xd_ang.index_select(1, parent), fr.r_parent))
-    w_rel = bodies.xd_ang.index_select(1, child) - bodies.xd_ang.index_select(1, parent)
+    ends = torch.cat((child, parent))
+    m, i = rigid.gather(inv, ends)
+    m, i = m.unflatten(-2, (2, -1)), i.unflatten(1, (2, -1))  # (..., 2, J, 1), (B, 2, J, 3, 3): child, parent
+    r = torch.stack((fr.r_child, fr.r_parent), 1)
+    s = math.skew(r)
+    k_lin = m.sum(-3)[..., None] * math.eye3(m) - (s @ i @ s).sum(1)
+    gain = _subspace_inverse(torch.stack((k_lin, i.sum(1)), 1), torch.stack((fr.lin_proj, fr.ang_proj), 1))
+    vel, ang = bodies.xd_vel.index_select(1, ends), bodies.xd_ang.index_select(1, ends)
+    vel, ang = vel.unflatten(1, (2, -1)), ang.unflatten(1, (2, -1))
+    twist = torch.stack((vel + math.cross(ang, r), ang), 1)  # (B, lin/ang, child/parent, J, 3) at the anchor
+    rate = twist[:, :, 0] - twist[:, :, 1]
+    err = torch.stack((fr.lin_err, fr.ang_err), 1)
     kappa, zeta = sys.joint_stiffness / (h * h), sys.joint_damping / h
-    force = -math.matvec(gain_lin, kappa * fr.lin_err + zeta * v_anchor)
-    torque = -math.matvec(gain_ang, kappa * fr.ang_err + zeta * w_rel)
-    zero = torch.zeros_like(bodies.x_pos)
-    return (rigid.scatter_pair(zero, child, parent, force, -force),
-            rigid.scatter_pair(zero, child, parent, math.cross(fr.r_child, force) + torque,
-                               -math.cross(fr.r_parent, force) - torque))
+    force, torque = (-math.matvec(gain, kappa * err + zeta * rate)).unbind(1)
+    moment = math.cross(r, force.unsqueeze(1)) + torque.unsqueeze(1)  # about each body's COM
+    wrench = torch.cat((force.unsqueeze(1).expand_as(moment), moment), -1)
+    zero = bodies.x_pos.new_zeros(bodies.x_pos.shape[:-1] + (6,))
+    total = rigid.scatter_pair(zero, child, parent, wrench[:, 0], -wrench[:, 1])
+    return total[..., :3], total[..., 3:]
 
 
 def limit_forces(sys: System, q: torch.Tensor, qd: torch.Tensor, w: torch.Tensor, h: float) -> torch.Tensor:
