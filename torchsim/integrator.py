@@ -22,7 +22,7 @@ def velocity_update(sys: System, bodies: Bodies, inv: rigid.InverseInertia, inv_
     inertia = sys.body_inertia
     i_w = math.matvec(inertia, w_body)
     residual = h * math.cross(w_body, i_w) - h * math.quat_rotate_inv(quat, torque[:, :n])
-    jac = inertia + h * (math.skew(w_body) @ inertia - math.skew(i_w))
+    jac = inertia + h * (math.mm(math.skew(w_body), inertia) - math.skew(i_w))
     w_body = w_body - math.matvec(math.inv3(jac), residual)
     xd_ang = torch.cat((math.quat_rotate(quat, w_body), bodies.xd_ang[:, n:]), 1)
     return bodies._replace(xd_vel=xd_vel, xd_ang=xd_ang)

@@ -35,8 +35,8 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     v = u.new_zeros(u.shape[0], n_ext * n_dof, 3)
     v = v.index_add(1, child * n_dof + dof_index, u).index_add(1, parent * n_dof + dof_index, -u)
     v = v.view(u.shape[0], n_ext, n_dof, 3)
-    w = inv.inertia @ v.transpose(-1, -2)  # (B, N + 1, 3, D)
-    a = torch.einsum("bndx,bnxe->bde", v, w)
+    w = math.mm(inv.inertia, v.transpose(-1, -2))  # (B, N + 1, 3, D)
+    a = math.mm(v.transpose(1, 2).flatten(2), w.flatten(1, 2))  # (B, D, D): sums over bodies and components
     armature = torch.where(hinge, sys.dof_armature, 0.0)
     inertia = armature + torch.where(hinge, damping_h, 0.0)
     mask = (inertia > 0).to(u.dtype)
@@ -45,9 +45,9 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     rhs = mask * (compliance * armature * qd_ref - qd_raw)
     mat = mask[..., :, None] * a * mask[..., None, :] + torch.diag_embed(compliance + 1.0 - mask).expand_as(a)
     mu = torch.linalg.solve(mat, rhs)
-    impulse = torch.einsum("bndx,bd->bnx", v, mu)
+    impulse = (v * mu[:, None, :, None]).sum(2)
     bodies = bodies._replace(xd_ang=bodies.xd_ang + math.matvec(inv.inertia, impulse))
-    return bodies, qd_raw + (a @ mu.unsqueeze(-1)).squeeze(-1)
+    return bodies, qd_raw + math.matvec(a, mu)
 
 
 def slide_inertia_and_damping(sys: System, before: Bodies, after: Bodies, axes: torch.Tensor, qd: torch.Tensor,
@@ -92,7 +92,7 @@ def armature_loaded_inertia(sys: System, bodies: Bodies, inv: rigid.InverseInert
     """
     n = sys.num_bodies
     rot = math.quat_to_mat(bodies.x_quat[:, :n])
-    inertia = rot @ sys.body_inertia @ rot.transpose(-1, -2)
+    inertia = math.mm(rot, sys.body_inertia, rot.transpose(-1, -2))
     child, _ = rigid.dof_bodies(sys)
     hinge_armature = torch.where(sys.dof_is_hinge, sys.dof_armature, 0.0)
     loads = hinge_armature[..., None, None] * (axes[..., :, None] * axes[..., None, :])

@@ -103,7 +103,7 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     # constraint errors: the anchor offset along constrained directions, and the rotation out of the hinge axes
     if sys.jnt_has_slides:
         rot0 = math.quat_to_mat(quat0)
-        lin_proj = rot0 @ sel(sys.jnt_lin_proj) @ rot0.transpose(-1, -2)
+        lin_proj = math.mm(rot0, sel(sys.jnt_lin_proj), rot0.transpose(-1, -2))
         lin_err = math.matvec(lin_proj, delta)
     else:
         lin_proj, lin_err = eye.expand(delta.shape + (3,)), delta

@@ -63,6 +63,24 @@ def eye3(like: torch.Tensor) -> torch.Tensor:
     return _table("eye3", like)
 
 
+def mm(*mats: torch.Tensor) -> torch.Tensor:
+    """Product of small matrices, left to right, broadcasting over leading dimensions.
+
+    Eager mode uses ``@`` (one library kernel per product). Under ``torch.compile`` each product is a broadcast
+    multiply-and-sum instead, which inductor fuses into the surrounding kernels: a ``@`` would stay an opaque
+    library call per product there, and batched 3x3 (or vector-by-table) products are slow ones.
+    """
+    out = mats[0]
+    for m in mats[1:]:
+        out = (out.unsqueeze(-1) * m.unsqueeze(-3)).sum(-2) if torch.compiler.is_compiling() else out @ m
+    return out
+
+
+def _table_product(x: torch.Tensor, name: str) -> torch.Tensor:
+    """``x @ T`` for a constant table ``T`` and row vectors ``x (..., K)``."""
+    return mm(x.unsqueeze(-2), _table(name, x)).squeeze(-2)
+
+
 def cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Cross product over the last axis, broadcasting."""
     if a.ndim < b.ndim:
@@ -92,7 +110,7 @@ def _outer_flat(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product ``a ⊗ b``."""
-    return _outer_flat(a, b) @ _table("quat_product", a)
+    return _table_product(_outer_flat(a, b), "quat_product")
 
 
 def quat_conj(q: torch.Tensor) -> torch.Tensor:
@@ -115,7 +133,7 @@ def quat_rotate_inv(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 def quat_to_mat(q: torch.Tensor) -> torch.Tensor:
     """Rotation matrix ``(..., 3, 3)`` of unit quaternion ``q``."""
-    return (_outer_flat(q, q) @ _table("rotation", q)).unflatten(-1, (3, 3))
+    return _table_product(_outer_flat(q, q), "rotation").unflatten(-1, (3, 3))
 
 
 def axis_angle_to_quat(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
@@ -141,7 +159,7 @@ def quat_to_rot_vec(q: torch.Tensor) -> torch.Tensor:
 
 def skew(v: torch.Tensor) -> torch.Tensor:
     """Cross-product matrix ``[v]x`` with ``[v]x u = v × u``."""
-    return (v @ _table("skew", v)).unflatten(-1, (3, 3))
+    return _table_product(v, "skew").unflatten(-1, (3, 3))
 
 
 def inv3(m: torch.Tensor) -> torch.Tensor:

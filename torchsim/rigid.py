@@ -25,7 +25,7 @@ def body_inverse_inertia(sys: System) -> torch.Tensor:
 def inverse_inertia(sys: System, x_quat: torch.Tensor, inv_inertia_body: torch.Tensor) -> InverseInertia:
     """World-frame ``R I^-1 R^T`` for ext orientations ``x_quat (B, N + 1, 4)``."""
     rot = math.quat_to_mat(x_quat[:, :-1])
-    inv_world = rot @ inv_inertia_body @ rot.transpose(-1, -2)
+    inv_world = math.mm(rot, inv_inertia_body, rot.transpose(-1, -2))
     inv_world = torch.cat((inv_world, torch.zeros_like(inv_world[:, :1])), 1)
     inv_mass = 1.0 / sys.body_mass
     inv_mass = torch.cat((inv_mass, torch.zeros_like(inv_mass[..., :1])), -1)

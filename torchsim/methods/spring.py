@@ -23,7 +23,7 @@ def _gains(sys: System, inv_mass: torch.Tensor, h: float):
 
 def _subspace_inverse(k: torch.Tensor, proj: torch.Tensor) -> torch.Tensor:
     """``(P K P)^+`` restricted to the subspace of projector ``P`` (identity added on its complement)."""
-    return proj @ math.inv3(proj @ k @ proj + (math.eye3(k) - proj)) @ proj
+    return math.mm(proj, math.inv3(math.mm(proj, k, proj) + (math.eye3(k) - proj)), proj)
 
 
 def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.InverseInertia, h: float):
@@ -42,7 +42,7 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.Invers
     m, i = m.unflatten(-2, (2, -1)), i.unflatten(1, (2, -1))  # (..., 2, J, 1), (B, 2, J, 3, 3): child, parent
     r = torch.stack((fr.r_child, fr.r_parent), 1)
     s = math.skew(r)
-    k_lin = m.sum(-3)[..., None] * math.eye3(m) - (s @ i @ s).sum(1)
+    k_lin = m.sum(-3)[..., None] * math.eye3(m) - math.mm(s, i, s).sum(1)
     gain = _subspace_inverse(torch.stack((k_lin, i.sum(1)), 1), torch.stack((fr.lin_proj, fr.ang_proj), 1))
     vel, ang = bodies.xd_vel.index_select(1, ends), bodies.xd_ang.index_select(1, ends)
     vel, ang = vel.unflatten(1, (2, -1)), ang.unflatten(1, (2, -1))

@@ -33,8 +33,8 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         m_p, i_p = rigid.gather(inv, parent)
         s_c, s_p = math.skew(fr.r_child), math.skew(fr.r_parent)
         eye = torch.eye(3, dtype=m_c.dtype, device=m_c.device)
-        k_ll = (m_c + m_p)[..., None] * eye - s_c @ i_c @ s_c - s_p @ i_p @ s_p
-        k_la = -(s_c @ i_c + s_p @ i_p)
+        k_ll = (m_c + m_p)[..., None] * eye - math.mm(s_c, i_c, s_c) - math.mm(s_p, i_p, s_p)
+        k_la = -(math.mm(s_c, i_c) + math.mm(s_p, i_p))
         k_aa = i_c + i_p
 
         # rotation rows in hinge-slot coordinates
@@ -53,13 +53,13 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         gt = g.transpose(-1, -2)
 
         p_l = fr.lin_proj
-        a = p_l @ k_ll @ p_l + (eye - p_l)  # identity on the free directions keeps the blocks invertible
-        b = p_l @ k_la @ gt @ p_m
-        c = p_m @ g @ k_aa @ gt @ p_m + torch.diag_embed(1.0 - mask)
+        a = math.mm(p_l, k_ll, p_l) + (eye - p_l)  # identity on the free directions keeps the blocks invertible
+        b = math.mm(p_l, k_la, gt, p_m)
+        c = math.mm(p_m, g, k_aa, gt, p_m) + torch.diag_embed(1.0 - mask)
         a_inv = math.inv3(a)
-        bt_ainv = b.transpose(-1, -2) @ a_inv
+        bt_ainv = math.mm(b.transpose(-1, -2), a_inv)
         rhs_l, rhs_s = -fr.lin_err, -mask * error
-        mu = math.matvec(math.inv3(c - bt_ainv @ b), rhs_s - math.matvec(bt_ainv, rhs_l))
+        mu = math.matvec(math.inv3(c - math.mm(bt_ainv, b)), rhs_s - math.matvec(bt_ainv, rhs_l))
         p_lin = math.matvec(a_inv, rhs_l - math.matvec(b, mu))
         bodies = rigid.apply_pair_position(bodies, inv, child, parent, fr.r_child, fr.r_parent, p_lin,
                                            math.matvec(gt, mu))
