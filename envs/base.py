@@ -42,11 +42,14 @@ class TorchsimEnv(EnvBase):
             observation of a finished env is already its next episode's first one, and TorchRL writes NaN into
             its ``("next", "observation")``; use with ``GAE(..., auto_reset_env=True)``. This makes
             ``step_and_maybe_reset`` free of host syncs so it compiles as one graph.
-        method, substeps: physics solution method and substeps per model timestep (``torchsim.load_mjcf``).
+        method, substeps: physics solution method and substeps per model timestep (``torchsim.load_mjcf``;
+            default: the task's ``substeps``).
     """
 
     model_file: str
     frame_skip: int
+    #: Physics substeps per model timestep, chosen per task by measurement (None: ``load_mjcf``'s 0.5 ms default).
+    substeps: int | None = None
     #: Reset noise added to the initial ``q`` / ``qd``: (distribution, scale), distribution "uniform" (+-scale)
     #: or "normal" (standard deviation scale).
     noise_q = ("uniform", 0.1)
@@ -62,6 +65,7 @@ class TorchsimEnv(EnvBase):
             raise ValueError(f"num_envs must be a positive integer, got {num_envs}")
         super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
         self.mj_model = mujoco.MjModel.from_xml_path(str(asset_path(self.model_file)))
+        substeps = substeps or self.substeps
         self.base_sys = torchsim.load_mjcf(asset_path(self.model_file), method=method, substeps=substeps,
                                            dtype=dtype, device=self.device)
         self.sys = self.base_sys

@@ -60,6 +60,7 @@ class HalfCheetah(_Runner):
 
     model_file = "halfcheetah.xml"
     frame_skip = 5
+    substeps = 10  # 1 ms: as close to MuJoCo as 0.5 ms over 0.25 s (envs/assets/halfcheetah.xml header)
     observation_size = 17
     healthy_reward = 0.0
     ctrl_cost_weight = 0.1
@@ -69,9 +70,12 @@ class HalfCheetah(_Runner):
 
 
 class _PlanarWalker(_Runner):
-    """Hopper and Walker2d: root x/z slides and pitch hinge; observation ``q[1:]`` and ``clip(qd, -10, 10)``."""
+    """Hopper and Walker2d: root x/z slides and pitch hinge at the torso; observation ``q[1:]`` and
+    ``clip(qd, -10, 10)``. As in Brax, ``q[1]`` is the torso's height change from its 1.25 m start (rootz has no
+    ``ref``) and the health check reads the torso frame's world height."""
 
     frame_skip = 4
+    named_bodies = ("torso",)
     noise_q = ("uniform", 5e-3)
     noise_qd = ("uniform", 5e-3)
     healthy_z = (0.0, float("inf"))
@@ -82,7 +86,7 @@ class _PlanarWalker(_Runner):
         return torch.cat((state.q[:, 1:], state.qd.clamp(-10.0, 10.0)), -1)
 
     def _terminated(self, state):
-        z, angle = state.q[:, 1], state.q[:, 2]
+        z, angle = self.mj_body_positions(state)[:, 0, 2], state.q[:, 2]  # torso frame height [m], pitch [rad]
         rest = torch.cat((state.q[:, 2:], state.qd), -1).abs().amax(-1)
         healthy = ((z > self.healthy_z[0]) & (z < self.healthy_z[1]) & (angle > self.healthy_angle[0])
                    & (angle < self.healthy_angle[1]) & (rest < self.healthy_state))
@@ -92,7 +96,7 @@ class _PlanarWalker(_Runner):
 class Hopper(_PlanarWalker):
     """One-legged hopper (``hopper.xml``), ``dt = 4 x 2 ms``.
 
-    Observation (11): ``q[1:]`` (torso height, torso pitch, thigh/leg/foot angles), ``clip(qd, -10, 10)`` (6).
+    Observation (11): ``q[1:]`` (torso height change, torso pitch, thigh/leg/foot angles), ``clip(qd, -10, 10)`` (6).
     Action (3). Reward: ``vx + 1 - 1e-3 |a|^2``. Terminates unless torso height > 0.7 m, |pitch| < 0.2 rad and
     every entry of ``(q[2:], qd)`` is within (-100, 100). Reset: U(-5e-3, 5e-3) on q and qd.
     """
@@ -107,7 +111,7 @@ class Hopper(_PlanarWalker):
 class Walker2d(_PlanarWalker):
     """Planar biped (``walker2d.xml``), ``dt = 4 x 2 ms``.
 
-    Observation (17): ``q[1:]`` (torso height, pitch, 6 leg angles), ``clip(qd, -10, 10)`` (9). Action (6).
+    Observation (17): ``q[1:]`` (torso height change, pitch, 6 leg angles), ``clip(qd, -10, 10)`` (9). Action (6).
     Reward: ``vx + 1 - 1e-3 |a|^2``. Terminates unless 0.8 < torso height < 2.0 m and |pitch| < 1 rad.
     Reset: U(-5e-3, 5e-3) on q and qd.
     """

@@ -15,6 +15,7 @@ class InvertedPendulum(TorchsimEnv):
 
     model_file = "inverted_pendulum.xml"
     frame_skip = 2
+    substeps = 10  # 2 ms: contact-free, within MuJoCo's own timestep sensitivity (model header)
     observation_size = 4
     noise_q = ("uniform", 0.01)
     noise_qd = ("uniform", 0.01)
@@ -40,6 +41,7 @@ class InvertedDoublePendulum(TorchsimEnv):
 
     model_file = "inverted_double_pendulum.xml"
     frame_skip = 2
+    substeps = 5  # 2 ms: contact-free, within MuJoCo's own timestep sensitivity (model header)
     observation_size = 8
     named_bodies = ("pole2",)
     pole_length = 0.6

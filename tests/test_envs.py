@@ -126,7 +126,7 @@ def test_locomotion_rewards_and_terminations():
     hopper = envs.make("hopper", dtype=torch.float64)
     q0 = hopper.init_q.numpy()
     assert not hopper._terminated(_states(hopper, q0, q0)[0]).item()
-    for index, value in ((1, 0.6), (2, 0.3), (2, -0.3)):  # fallen (torso below 0.7 m) or tilted beyond 0.2 rad
+    for index, value in ((1, 0.6 - 1.25), (2, 0.3), (2, -0.3)):  # fallen (torso below 0.7 m) or tilted > 0.2 rad
         q = q0.copy()
         q[index] = value
         assert hopper._terminated(_states(hopper, q, q)[0]).item(), (index, value)
@@ -138,7 +138,7 @@ def test_locomotion_rewards_and_terminations():
     walker = envs.make("walker2d", dtype=torch.float64)
     q0 = walker.init_q.numpy()
     assert not walker._terminated(_states(walker, q0, q0)[0]).item()
-    for index, value in ((1, 0.7), (1, 2.1), (2, 1.1)):
+    for index, value in ((1, 0.7 - 1.25), (1, 2.1 - 1.25), (2, 1.1)):  # q[1]: torso height change from 1.25 m
         q = q0.copy()
         q[index] = value
         assert walker._terminated(_states(walker, q, q)[0]).item(), (index, value)
