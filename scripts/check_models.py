@@ -25,22 +25,25 @@ import numpy as np
 import torch
 
 import torchsim
+from torchsim.envs import ENVS
 
 ASSETS = Path(__file__).resolve().parent.parent / "envs" / "assets"
 F64 = torch.float64
 
-# frames: physics steps per env step (Brax / Gymnasium frame_skip); horizon [s]; kind: what is compared;
-# substeps: the recommended count per <option timestep> (see each model's header comment); seed: action seed.
-MODELS = {
-    "hopper": dict(frames=4, horizon=0.25, kind="root", substeps=4, seed=0),
-    "walker2d": dict(frames=4, horizon=0.25, kind="root", substeps=4, seed=0),
-    "halfcheetah": dict(frames=5, horizon=0.25, kind="root", substeps=10, seed=0),
-    "reacher": dict(frames=2, horizon=1.0, kind="q", substeps=20, seed=0, scale=0.1),
-    "inverted_pendulum": dict(frames=2, horizon=1.0, kind="q", substeps=10, seed=0, scale=0.1),
-    "inverted_double_pendulum": dict(frames=2, horizon=1.0, kind="q", substeps=5, seed=0, scale=0.02),
-    "pusher": dict(frames=5, horizon=1.0, kind="pusher", substeps=20, seed=0),
-    "humanoid": dict(frames=5, horizon=0.25, kind="root", substeps=6, seed=0),
+# horizon [s]; kind: what is compared; seed: action seed; scale: control amplitude as a fraction of the ctrlrange.
+# Frames per env step and substeps per model timestep are the env classes' (torchsim.envs.ENVS): the chosen ones.
+_CHECKS = {
+    "ant": dict(horizon=0.25, kind="root", seed=0),
+    "hopper": dict(horizon=0.25, kind="root", seed=0),
+    "walker2d": dict(horizon=0.25, kind="root", seed=0),
+    "halfcheetah": dict(horizon=0.25, kind="root", seed=0),
+    "reacher": dict(horizon=1.0, kind="q", seed=0, scale=0.1),
+    "inverted_pendulum": dict(horizon=1.0, kind="q", seed=0, scale=0.1),
+    "inverted_double_pendulum": dict(horizon=1.0, kind="q", seed=0, scale=0.02),
+    "pusher": dict(horizon=1.0, kind="pusher", seed=0),
+    "humanoid": dict(horizon=0.25, kind="root", seed=0),
 }
+MODELS = {name: dict(cfg, frames=ENVS[name].frame_skip, substeps=ENVS[name].substeps) for name, cfg in _CHECKS.items()}
 PUSHER_ARM = slice(0, 7)
 PUSHER_OBJECT = slice(7, 9)
 
@@ -50,7 +53,7 @@ def path(name: str) -> str:
 
 
 def initial_q(m: mujoco.MjModel) -> np.ndarray:
-    """Keyframe 'home' where the model has one, else qpos0."""
+    """Keyframe 'home' where the model has one, else qpos0 (the envs' reset centre)."""
     return m.key_qpos[0].copy() if m.nkey else m.qpos0.copy()
 
 
@@ -219,7 +222,7 @@ def main():
             per_step = (time.perf_counter() - t0) / (len(ours[0]) - 1) / MODELS[name]["frames"]
             err = trajectory_error(name, ours, ref)
             stable = stability(name, sub, method=args.method) if args.stability else None
-            print(f"{name:26s} {pairs:5d} {fk:8.1e} {m.opt.timestep:6.3f} {sub:4d} {err:9.2e} {mj_sens:9.2e} "
+            print(f"{name:26s} {pairs:5d} {fk:8.1e} {m.opt.timestep:6.3f} {str(sub or 'def'):>4s} {err:9.2e} {mj_sens:9.2e} "
                   f"{travel(name, ours):9.4f} {travel(name, ref):9.4f} {per_step:7.3f} "
                   f"{'-' if stable is None else ('yes' if stable else 'NO'):>6s}" + ("  DIVERGED" if ours[2] else ""),
                   flush=True)
