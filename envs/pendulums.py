@@ -11,6 +11,7 @@ class InvertedPendulum(TorchsimEnv):
 
     Observation (4): cart position, pole angle, their rates. Action (1) in [-1, 1] mapped to ctrlrange [-3, 3].
     Reward: 1 per step. Terminates when |pole angle| > 0.2 rad. Reset: U(-0.01, 0.01) on q and qd.
+    Versus MuJoCo (1 s, actions at 0.1x range): within 0.005 (MuJoCo's own 20 ms vs 5 ms: 0.005).
     """
 
     model_file = "inverted_pendulum.xml"
@@ -36,7 +37,8 @@ class InvertedDoublePendulum(TorchsimEnv):
     Observation (8): cart position, sin and cos of the 2 hinge angles, ``clip(qd, -10, 10)`` (3). Action (1).
     Reward: ``10 (1 - terminated) - 0.01 x_tip^2 - (z_tip - 2)^2 - 1e-3 w1^2 - 5e-3 w2^2`` (tip: 0.6 m along the upper pole from
     its hinge; w: hinge rates). Terminates when the tip is at or below z = 1 m. Reset: U(-0.1, 0.1) on q,
-    0.1 N(0, 1) on qd.
+    0.1 N(0, 1) on qd. Versus MuJoCo (1 s, actions at 0.02x range): within 0.045 rad (MuJoCo's own 10 ms vs
+    2.5 ms: 0.032 rad).
     """
 
     model_file = "inverted_double_pendulum.xml"
