@@ -7,9 +7,10 @@
 
 from torchsim import kinematics
 from torchsim.io_mjcf import UnsupportedMJCFError, load_mjcf
+from torchsim.io_urdf import UnsupportedURDFError, load_urdf
 from torchsim.kinematics import mj_body_poses
 from torchsim.pipeline import init, step
 from torchsim.state import State
 from torchsim.system import System
 
-__all__ = ["load_mjcf", "init", "step", "State", "System", "UnsupportedMJCFError", "mj_body_poses", "kinematics"]
+__all__ = ["load_mjcf", "load_urdf", "UnsupportedURDFError", "init", "step", "State", "System", "UnsupportedMJCFError", "mj_body_poses", "kinematics"]

@@ -143,13 +143,13 @@ def contacts(sys: System, bodies: Bodies) -> Contacts:
     pos, normal, depth, body_a, body_b, friction = [], [], [], [], [], []
     for group in sys.contact_groups:
         k = POINTS_PER_PAIR[group.kind]
-        poses = []
-        for geom in (group.geom_a, group.geom_b):
-            body = sys.geom_body[geom]
-            x, q = bodies.x_pos.index_select(1, body), bodies.x_quat.index_select(1, body)
-            poses += [x + math.quat_rotate(q, sys.geom_pos[geom]), math.quat_mul(q, sys.geom_quat[geom]),
-                      sys.geom_size[geom].expand(x.shape[0], -1, -1)]
-        pt, n, dist = _pair_contacts(group.kind, *poses)
+        geom = torch.cat((group.geom_a, group.geom_b))  # both sides' world poses at once
+        body = sys.geom_body[geom]
+        x, q = bodies.x_pos.index_select(1, body), bodies.x_quat.index_select(1, body)
+        pos_a, pos_b = (x + math.quat_rotate(q, sys.geom_pos[geom])).chunk(2, 1)
+        quat_a, quat_b = math.quat_mul(q, sys.geom_quat[geom]).chunk(2, 1)
+        size_a, size_b = sys.geom_size[geom].expand(x.shape[0], -1, -1).chunk(2, 1)
+        pt, n, dist = _pair_contacts(group.kind, pos_a, quat_a, size_a, pos_b, quat_b, size_b)
         pos.append(pt.flatten(1, 2))
         normal.append(n.flatten(1, 2))
         depth.append((group.margin[:, None] - dist).flatten(1, 2))

@@ -18,10 +18,11 @@ def velocity_update(sys: System, bodies: Bodies, inv: rigid.InverseInertia, inv_
     moving = (inv.mass > 0).to(force.dtype)[..., None]
     xd_vel = bodies.xd_vel + h * (sys.gravity * moving + inv.mass[..., None] * force)
     quat = bodies.x_quat[:, :n]
-    w_body = math.quat_rotate_inv(quat, bodies.xd_ang[:, :n])
+    w_body, torque_body = math.quat_rotate_inv(quat.unsqueeze(-2), torch.stack((bodies.xd_ang[:, :n], torque[:, :n]),
+                                                                                -2)).unbind(-2)
     inertia = sys.body_inertia
     i_w = math.matvec(inertia, w_body)
-    residual = h * math.cross(w_body, i_w) - h * math.quat_rotate_inv(quat, torque[:, :n])
+    residual = h * math.cross(w_body, i_w) - h * torque_body
     jac = inertia + h * (math.mm(math.skew(w_body), inertia) - math.skew(i_w))
     w_body = w_body - math.matvec(math.inv3(jac), residual)
     xd_ang = torch.cat((math.quat_rotate(quat, w_body), bodies.xd_ang[:, n:]), 1)

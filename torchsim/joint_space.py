@@ -81,21 +81,19 @@ def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: Join
     return after, rates
 
 
-def armature_loaded_inertia(sys: System, bodies: Bodies, inv: rigid.InverseInertia,
-                            axes: torch.Tensor) -> rigid.InverseInertia:
-    """Inverse inertias in which each child body also carries its hinges' armature ``J a a^T`` (world frame).
+def armature_loaded_inertia(sys: System, inv: rigid.InverseInertia, axes: torch.Tensor) -> rigid.InverseInertia:
+    """Inverse inertias in which each child body also carries its hinges' armature ``J a a^T`` (world frame), at the
+    poses ``inv`` was built for.
 
     Contacts use these: an impulse on a light link whose hinge has a heavy armature turns it about the hinge as
     if the rotor were attached. The rotor is relative to the parent, this is relative to the world: exact while
     the parent does not turn about the hinge axis, and in any case it only shapes how a contact impulse divides
     between rotation and translation.
     """
-    n = sys.num_bodies
-    rot = math.quat_to_mat(bodies.x_quat[:, :n])
-    inertia = math.mm(rot, sys.body_inertia, rot.transpose(-1, -2))
+    inertia = math.mm(inv.rot, sys.body_inertia, inv.rot.transpose(-1, -2))
     child, _ = rigid.dof_bodies(sys)
     hinge_armature = torch.where(sys.dof_is_hinge, sys.dof_armature, 0.0)
     loads = hinge_armature[..., None, None] * (axes[..., :, None] * axes[..., None, :])
     inertia = inertia.index_add(1, child, loads)
     inv_world = torch.cat((math.inv3(inertia), torch.zeros_like(inv.inertia[:, :1])), 1)
-    return rigid.InverseInertia(inv.mass, inv_world)
+    return rigid.InverseInertia(inv.mass, inv_world, inv.rot)

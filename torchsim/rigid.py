@@ -11,10 +11,12 @@ from torchsim.system import System
 
 class InverseInertia(NamedTuple):
     """Ext-indexed inverse masses ``(N + 1,)`` or ``(B, N + 1)`` and world-frame inverse inertias ``(B, N + 1, 3, 3)``;
-    the static world (index N) has zero of both, so impulses on it vanish."""
+    the static world (index N) has zero of both, so impulses on it vanish. ``rot (B, N, 3, 3)``: the body rotations
+    they were built for (kept for reuse)."""
 
     mass: torch.Tensor
     inertia: torch.Tensor
+    rot: torch.Tensor
 
 
 def body_inverse_inertia(sys: System) -> torch.Tensor:
@@ -29,7 +31,7 @@ def inverse_inertia(sys: System, x_quat: torch.Tensor, inv_inertia_body: torch.T
     inv_world = torch.cat((inv_world, torch.zeros_like(inv_world[:, :1])), 1)
     inv_mass = 1.0 / sys.body_mass
     inv_mass = torch.cat((inv_mass, torch.zeros_like(inv_mass[..., :1])), -1)
-    return InverseInertia(inv_mass, inv_world)
+    return InverseInertia(inv_mass, inv_world, rot)
 
 
 def gather(inv: InverseInertia, idx: torch.Tensor):

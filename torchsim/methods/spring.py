@@ -102,5 +102,5 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     after = integrator.velocity_update(sys, bodies, inv, inv_inertia_body, force + spring_force, torque + spring_torque, h)
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
     if sys.contact_groups:
-        after = contact_impulses(sys, after, joint_space.armature_loaded_inertia(sys, after, inv, axes), h)
+        after = contact_impulses(sys, after, joint_space.armature_loaded_inertia(sys, inv, axes), h)
     return integrator.integrate_positions(after, h)
