@@ -1,0 +1,286 @@
+"""Pieces shared by the PPO and SAC recipes: env construction, networks, evaluation, and :class:`Run` (progress,
+logging, checkpoints, budget, plots and the policy video of one training run)."""
+
+import collections
+import json
+import math
+import os
+import pathlib
+import subprocess
+import sys
+import time
+import warnings
+
+import numpy as np
+import torch
+from omegaconf import DictConfig, OmegaConf
+from tensordict.nn import TensorDictModule
+from torch import nn
+from torchrl.envs import Compose, ExplorationType, RewardSum, StepCounter, TransformedEnv, set_exploration_type
+from torchrl.envs.transforms import VecNormV2
+from torchrl.modules import MLP, NormalParamExtractor, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.record.loggers import get_logger
+
+import torchsim.envs
+
+# VecNormV2 warns on every call that batched containers are experimental; its batch reduction is what we want.
+warnings.filterwarnings("ignore", message="Support of VecNormV2")
+
+ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "tanh": nn.Tanh, "elu": nn.ELU}
+
+
+class TrainingDiverged(RuntimeError):
+    """A loss became non-finite; the message names the env step and the last good checkpoint."""
+
+
+# ------------------------------------------------------------------------------------------------------ environment
+def make_env(cfg: DictConfig, num_envs: int, device) -> TransformedEnv:
+    """The task batched over ``num_envs`` with running observation normalisation (``VecNormV2``, statistics over the
+    batch too), episode return (``episode_reward``) and length (``step_count``)."""
+    base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length)
+    norm = VecNormV2(in_keys=["observation"], decay=cfg.obs_norm_decay, eps=1e-4, reduce_batch_dims=True)
+    return TransformedEnv(base, Compose(norm, RewardSum(), StepCounter()))
+
+
+def obs_norm(env: TransformedEnv) -> VecNormV2:
+    return env.transform[0]
+
+
+# --------------------------------------------------------------------------------------------------------- networks
+def mlp(in_features: int, out_features: int, cfg_net: DictConfig, device) -> MLP:
+    return MLP(in_features=in_features, out_features=out_features, num_cells=list(cfg_net.hidden),
+               activation_class=ACTIVATIONS[cfg_net.activation], device=device)
+
+
+def make_actor(env, cfg_net: DictConfig, device) -> ProbabilisticActor:
+    """Tanh-squashed Gaussian policy on ``observation``; its deterministic action is ``tanh(loc)``."""
+    obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+    net = nn.Sequential(mlp(obs_dim, 2 * act_dim, cfg_net, device), NormalParamExtractor(scale_lb=1e-3))
+    return ProbabilisticActor(TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
+                              in_keys=["loc", "scale"], spec=env.action_spec_unbatched,
+                              distribution_class=TanhNormal, return_log_prob=True)
+
+
+def make_value(env, cfg_net: DictConfig, device, with_action: bool) -> ValueOperator:
+    """V(observation) or, ``with_action``, Q(observation, action) (torchrl's MLP concatenates its inputs)."""
+    obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+    if with_action:
+        return ValueOperator(mlp(obs_dim + act_dim, 1, cfg_net, device), in_keys=["observation", "action"],
+                             out_keys=["state_action_value"])
+    return ValueOperator(mlp(obs_dim, 1, cfg_net, device), in_keys=["observation"])
+
+
+# ------------------------------------------------------------------------------------------------------- evaluation
+@torch.no_grad()
+def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False):
+    """Deterministic return and length of each env's first episode (at most ``max_steps`` steps), and, with
+    ``record``, env 0's ``q`` trajectory ``(T, nq)`` for a video. Finished envs keep stepping, masked out, so the
+    batch stays fixed; the loop stops once every env has finished."""
+    td = env.reset()
+    alive = torch.ones(env.batch_size, dtype=torch.bool, device=env.device)
+    ret = torch.zeros(env.batch_size, device=env.device)
+    length = torch.zeros(env.batch_size, dtype=torch.long, device=env.device)
+    qpos = [env.base_env.state.q[0].cpu()]
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        for t in range(max_steps):
+            td = env.step(policy(td))
+            ret += td["next", "reward"].squeeze(-1) * alive
+            length += alive
+            if record and bool(alive[0]):
+                qpos.append(env.base_env.state.q[0].cpu())
+            alive &= ~td["next", "done"].squeeze(-1)
+            if t % 10 == 9 and not alive.any():  # one host sync every 10 steps
+                break
+            td = env.step_mdp(td)
+    return ret, length, (torch.stack(qpos).double().numpy() if record else None)
+
+
+def load_policy(ckpt: dict, env: TransformedEnv, device) -> ProbabilisticActor:
+    """The actor of checkpoint ``ckpt`` (a loaded ``last.pt``), with ``env``'s normaliser set to the checkpoint's
+    statistics and frozen."""
+    cfg = OmegaConf.create(ckpt["cfg"])
+    actor = make_actor(env, cfg.algo.policy_net, device)
+    actor.load_state_dict(ckpt["actor"])
+    obs_norm(env).load_state_dict(ckpt["state"]["obs_norm"])
+    obs_norm(env).freeze()
+    return actor
+
+
+def render_gif(env_name: str, qpos: np.ndarray, dt: float, path: pathlib.Path) -> None:
+    """Write a GIF of ``qpos`` through ``torchsim.envs.video`` in a child process: MuJoCo picks its GL backend
+    when first imported (``MUJOCO_GL``), which in this process happened before we could choose EGL."""
+    path = pathlib.Path(path)
+    np.save(path.with_suffix(".npy"), qpos)
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    proc = subprocess.run([sys.executable, "-m", "torchsim.algos.render", env_name, str(path.with_suffix(".npy")),
+                           str(path), str(1.0 / dt)], env=env, capture_output=True, text=True)
+    if proc.returncode:
+        warnings.warn(f"no video ({proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else 'render failed'})")
+    else:
+        print(f"video: {path}")
+
+
+# ------------------------------------------------------------------------------------------------------- a training run
+class Run:
+    """Bookkeeping of one training run in ``out_dir``: env-step budget and wall clock, progress lines, TorchRL logger,
+    periodic deterministic evaluation, checkpoints (``checkpoints/last.pt``, written only after a finite update, so
+    it is always the last good state), resume, and the final plot and video.
+
+    ``state`` maps names to everything with a ``state_dict`` that a resumed run needs (networks, loss module with
+    its target networks and temperature, optimisers, observation normaliser).
+    """
+
+    def __init__(self, cfg: DictConfig, out_dir, state: dict, actor, eval_env: TransformedEnv, train_env):
+        self.cfg, self.out_dir, self.state, self.actor = cfg, pathlib.Path(out_dir), state, actor
+        self.eval_env, self.train_env = eval_env, train_env
+        self.logger = get_logger(cfg.logger, logger_name=str(self.out_dir), experiment_name="logs")
+        self.env_steps, self.iteration, self.elapsed = 0, 0, 0.0
+        self.history = {"train": [], "eval": []}  # rows (env_steps, wall_s, return)
+        self.recent = collections.deque(maxlen=cfg.recent_episodes)
+        self.next_eval = 0
+        if cfg.resume:
+            self.load(cfg.resume)
+        self.t0 = time.perf_counter() - self.elapsed
+        self.t_last, self.steps_last = time.perf_counter(), self.env_steps
+
+    # -- budget
+    @property
+    def wall(self) -> float:
+        return time.perf_counter() - self.t0
+
+    def finished(self) -> bool:
+        b = self.cfg.budget
+        return ((b.env_steps is not None and self.env_steps >= b.env_steps)
+                or (b.minutes is not None and self.wall >= 60 * b.minutes)
+                or (b.eval_return is not None and bool(self.history["eval"])
+                    and self.history["eval"][-1][2] >= b.eval_return))
+
+    # -- per iteration
+    def record_batch(self, data) -> None:
+        """Count the batch's env steps and collect the returns of the episodes that ended in it."""
+        self.env_steps += data.numel()
+        done = data["next", "done"].squeeze(-1)
+        returns = data["next", "episode_reward"].squeeze(-1)[done]
+        self.recent.extend(returns.tolist())
+        self.step_reward = data["next", "reward"].mean().item()
+
+    def end_iteration(self, losses: dict) -> None:
+        """After an update: stop on a non-finite loss, log, print, evaluate and checkpoint when due."""
+        self.iteration += 1
+        losses = {k: float(v) for k, v in losses.items()}
+        bad = [k for k, v in losses.items() if not math.isfinite(v)]
+        if bad:
+            ckpt = self.out_dir / "checkpoints" / "last.pt"
+            raise TrainingDiverged(f"non-finite {', '.join(bad)} at env step {self.env_steps} (iteration "
+                                   f"{self.iteration}); last good checkpoint: {ckpt if ckpt.exists() else 'none'}")
+        now = time.perf_counter()
+        sps = (self.env_steps - self.steps_last) / max(now - self.t_last, 1e-9)
+        self.t_last, self.steps_last = now, self.env_steps
+        recent = float(np.mean(self.recent)) if self.recent else float("nan")
+        metrics = {**{f"train/{k}": v for k, v in losses.items()}, "train/step_reward": self.step_reward,
+                   "time/env_steps_per_s": sps, "time/wall_s": self.wall}
+        if self.recent:
+            metrics["train/return"] = recent
+            self.history["train"].append((self.env_steps, self.wall, recent))
+        self.log(metrics)
+        line = (f"[{self.cfg.algo.name} {self.cfg.env.name}] it {self.iteration:4d}  steps {self.env_steps:>9,d}  "
+                f"{sps:7.0f} steps/s  return {recent:8.2f}  reward/step {self.step_reward:7.3f}  "
+                f"{self.wall / 60:5.1f} min")
+        if self.env_steps >= self.next_eval or self.finished():
+            line += f"  eval {self.evaluate():8.2f}"
+            self.next_eval = self.env_steps + self.cfg.eval.interval_steps
+        print(line, flush=True)
+        if self.iteration % self.cfg.checkpoint_every == 0 or self.finished():
+            self.save()
+
+    def log(self, metrics: dict) -> None:
+        if self.logger is not None:
+            for k, v in metrics.items():
+                self.logger.log_scalar(k, v, step=self.env_steps)
+
+    def evaluate(self) -> float:
+        self.sync_eval_norm()
+        ret, length, _ = evaluate(self.eval_env, self.actor, self.cfg.eval.max_steps)
+        mean = ret.mean().item()
+        self.history["eval"].append((self.env_steps, self.wall, mean))
+        self.log({"eval/return": mean, "eval/episode_length": length.float().mean().item()})
+        return mean
+
+    def sync_eval_norm(self) -> None:
+        """Evaluate with the training normaliser's current statistics, frozen."""
+        norm = obs_norm(self.eval_env)
+        norm.load_state_dict(obs_norm(self.train_env).state_dict())
+        norm.freeze()
+
+    # -- checkpoints
+    def save(self) -> pathlib.Path:
+        path = self.out_dir / "checkpoints" / "last.pt"
+        path.parent.mkdir(parents=True, exist_ok=True)
+        torch.save({"cfg": OmegaConf.to_container(self.cfg, resolve=True),
+                    "state": {k: v.state_dict() for k, v in self.state.items()},
+                    "actor": self.actor.state_dict(),
+                    "counters": {"env_steps": self.env_steps, "iteration": self.iteration, "elapsed": self.wall,
+                                 "next_eval": self.next_eval},
+                    "history": self.history, "rng": torch.get_rng_state()}, path.with_suffix(".tmp"))
+        os.replace(path.with_suffix(".tmp"), path)  # atomic: a crash mid-write keeps the previous checkpoint
+        return path
+
+    def load(self, path) -> None:
+        ckpt = torch.load(path, map_location=self.cfg.device, weights_only=False)
+        for k, v in self.state.items():
+            v.load_state_dict(ckpt["state"][k])
+        c = ckpt["counters"]
+        self.env_steps, self.iteration, self.elapsed, self.next_eval = (c["env_steps"], c["iteration"], c["elapsed"],
+                                                                      c["next_eval"])
+        self.history = ckpt["history"]
+        torch.set_rng_state(ckpt["rng"])
+        print(f"resumed from {path} at env step {self.env_steps}")
+
+    # -- end of run
+    def finish(self) -> dict:
+        """Save the final checkpoint, plot the curves, render the policy and return a summary."""
+        self.save()
+        plot_curves(self.history, self.out_dir / "curves.png", f"{self.cfg.algo.name} {self.cfg.env.name}")
+        if self.cfg.video.enabled:
+            self.sync_eval_norm()
+            _, _, qpos = evaluate(self.eval_env, self.actor, self.cfg.video.steps, record=True)
+            render_gif(self.cfg.env.name, qpos, self.eval_env.base_env.dt, self.out_dir / "policy.gif")
+        summary = {"env_steps": self.env_steps, "wall_s": round(self.wall, 1),
+                   "env_steps_per_s": round(self.env_steps / max(self.wall, 1e-9), 1),
+                   "final_eval_return": self.history["eval"][-1][2] if self.history["eval"] else None}
+        (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
+        print(f"done: {summary}; outputs in {self.out_dir}")
+        return summary
+
+
+def plot_curves(history: dict, path, title: str) -> None:
+    """Eval and train return against env steps and against wall-clock minutes, side by side (PNG)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    for key, style in (("eval", "o-"), ("train", "-")):
+        rows = np.array(history[key]).reshape(-1, 3)
+        axes[0].plot(rows[:, 0], rows[:, 2], style, label=f"{key} return")
+        axes[1].plot(rows[:, 1] / 60, rows[:, 2], style, label=f"{key} return")
+    axes[0].set_xlabel("env steps")
+    axes[1].set_xlabel("wall-clock (min)")
+    for ax in axes:
+        ax.set_ylabel("return")
+        ax.grid(alpha=0.3)
+        ax.legend()
+    fig.suptitle(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def maybe_compile(loss_module, cfg: DictConfig):
+    """``torch.compile`` the loss when ``cfg.compile``; a graph dynamo cannot handle runs eagerly instead of failing
+    (the update must work either way, on CPU and CUDA)."""
+    if not cfg.compile:
+        return loss_module
+    torch._dynamo.config.suppress_errors = True
+    return torch.compile(loss_module)

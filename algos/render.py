@@ -1,0 +1,21 @@
+"""Render a saved ``q`` trajectory as a GIF: ``python -m torchsim.algos.render ENV QPOS.npy OUT.gif FPS``.
+
+A separate process because MuJoCo chooses its GL backend at import (set ``MUJOCO_GL=egl`` for headless machines);
+:func:`torchsim.algos.common.render_gif` runs it.
+"""
+
+import os
+import sys
+
+os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported (by torchsim)
+
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+
+import torchsim.envs  # noqa: E402
+from torchsim.envs.video import render_frames, save_gif  # noqa: E402
+
+if __name__ == "__main__":
+    env_name, qpos_path, out, fps = sys.argv[1:]
+    mj_model = mujoco.MjModel.from_xml_path(str(torchsim.envs.asset_path(torchsim.envs.ENVS[env_name].model_file)))
+    save_gif(render_frames(mj_model, np.load(qpos_path)), out, fps=float(fps))

@@ -1,0 +1,46 @@
+"""SAC (twin Q, learned temperature, Polyak targets) on a batched torchsim env with an on-device replay buffer.
+
+Each iteration collects ``num_envs x unroll`` steps (uniformly random actions for the first ``random_frames``), adds
+them to the buffer and runs ``updates_per_iter`` gradient steps on minibatches of ``batch_size``.
+"""
+
+import torch
+from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
+from torchrl.objectives import SACLoss, SoftUpdate
+
+from torchsim.algos.common import Run, make_actor, make_env, make_value, maybe_compile, obs_norm
+
+
+def train(cfg, out_dir) -> dict:
+    a, device = cfg.algo, torch.device(cfg.device)
+    env = make_env(cfg, a.num_envs, device)
+    actor = make_actor(env, a.policy_net, device)
+    qvalue = make_value(env, a.q_net, device, with_action=True)
+    loss_module = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", alpha_init=a.alpha_init)
+    loss_module.make_value_estimator(gamma=a.gamma)
+    target_update = SoftUpdate(loss_module, tau=a.tau)
+    # one optimiser suffices: SACLoss detaches what each of its three losses must not train
+    optim = torch.optim.Adam(loss_module.parameters(), lr=a.lr)
+    buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(a.buffer_size, device=device), batch_size=a.batch_size)
+    run = Run(cfg, out_dir, {"loss": loss_module, "optim": optim, "obs_norm": obs_norm(env)}, actor,
+              eval_env=make_env(cfg, cfg.eval.episodes, device), train_env=env)
+    collector = Collector(env, actor, frames_per_batch=a.num_envs * a.unroll, total_frames=-1, device=device,
+                          init_random_frames=0 if cfg.resume else a.random_frames)
+    loss_fn = maybe_compile(loss_module, cfg)
+    for data in collector:
+        run.record_batch(data)
+        data["next", "reward"] = data["next", "reward"] * a.reward_scale
+        buffer.extend(data.reshape(-1))
+        for _ in range(a.updates_per_iter):
+            losses = loss_fn(buffer.sample())
+            loss = losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_alpha"]
+            optim.zero_grad()
+            loss.backward()
+            optim.step()
+            target_update.step()
+        run.end_iteration(losses.select("loss_actor", "loss_qvalue", "loss_alpha", "alpha").detach())
+        if run.finished():
+            break
+    collector.shutdown()
+    return run.finish()
