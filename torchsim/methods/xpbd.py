@@ -32,7 +32,7 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         m_c, i_c = rigid.gather(inv, child)
         m_p, i_p = rigid.gather(inv, parent)
         s_c, s_p = math.skew(fr.r_child), math.skew(fr.r_parent)
-        eye = torch.eye(3, dtype=m_c.dtype, device=m_c.device)
+        eye = math.eye3(m_c)
         k_ll = (m_c + m_p)[..., None] * eye - math.mm(s_c, i_c, s_c) - math.mm(s_p, i_p, s_p)
         k_la = -(math.mm(s_c, i_c) + math.mm(s_p, i_p))
         k_aa = i_c + i_p
@@ -45,7 +45,7 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         lo, hi = sys.dof_range[dof].unbind(-1)
         violation = torch.where(has_dof & sys.dof_limited[dof], torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0), 0.0)
         mode = sys.jnt_mode[colour]
-        hard = (mode[:, :3] @ torch.tensor([[1.0, 1, 1], [0, 1, 1], [0, 0, 1]], dtype=mode.dtype, device=mode.device)) > 0
+        hard = mode[:, :3].cumsum(-1) > 0  # a weld's slots; slots k >= n of an n-hinge joint (n = 1, 2)
         g = fr.hinge_dual
         error = torch.where(hard, math.matvec(g, fr.ang_err), violation)
         mask = (hard | (violation != 0)).to(q.dtype)
