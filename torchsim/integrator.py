@@ -18,8 +18,8 @@ def velocity_update(sys: System, bodies: Bodies, inv: rigid.InverseInertia, inv_
     moving = (inv.mass > 0).to(force.dtype)[..., None]
     xd_vel = bodies.xd_vel + h * (sys.gravity * moving + inv.mass[..., None] * force)
     quat = bodies.x_quat[:, :n]
-    w_body, torque_body = math.quat_rotate_inv(quat.unsqueeze(-2), torch.stack((bodies.xd_ang[:, :n], torque[:, :n]),
-                                                                                -2)).unbind(-2)
+    rate_and_torque = torch.stack((bodies.xd_ang[:, :n], torque[:, :n]), -2)  # into the body frame in one rotation
+    w_body, torque_body = math.quat_rotate_inv(quat.unsqueeze(-2), rate_and_torque).unbind(-2)
     inertia = sys.body_inertia
     i_w = math.matvec(inertia, w_body)
     residual = h * math.cross(w_body, i_w) - h * torque_body

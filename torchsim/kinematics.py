@@ -79,7 +79,8 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     """Measure the joints ``joints (K,)`` (default: all) from ext body states (see :class:`JointFrames`).
 
     With ``coordinates=False`` only the constraint fields are computed (``q``, ``qd``, ``axes``, ``quat_rel``,
-    ``ang_rel``, ``hinge_dual`` are None). Work for joint kinds absent from the model is skipped (``sys.jnt_kinds``, static).
+    ``ang_rel``, ``hinge_dual`` are None). Work for joint kinds absent from the model is skipped (``sys.jnt_kinds``,
+    static).
     """
 
     def sel(t):
@@ -121,7 +122,8 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
         ang_err = ang_err - mode[:, 2] * tilt * n12
         ang_proj = ang_proj + mode[:, 2, None] * _outer(n12)
     if not coordinates:
-        return JointFrames(None, None, None, r_parent, r_child, lin_err, lin_proj, ang_err, ang_proj, None, None, None)
+        return JointFrames(None, None, None, r_parent, r_child, lin_err, lin_proj, ang_err, ang_proj,
+                           None, None, None)
 
     # hinge coordinates: decompose the relative rotation about the joint's axes (a1 parent-fixed, last child-fixed)
     quat_rel = math.quat_mul(math.quat_conj(quat0), qc)
@@ -131,7 +133,7 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     q1 = (mode[:, 1, 0] + mode[:, 2, 0]) * math.angle_about(a1, a2, r_a2)  # 1 hinge: a2 is a perpendicular of a1
     q2 = mode[:, 2, 0] * -math.angle_about(a2, a1, rt_a1) if two else q1 * 0
     q3 = q1 * 0
-    hinge_axes = axes0  # rows; the zero frame's axes, except for 2 and 3 hinges:
+    hinge_axes = axes0  # rows: the zero frame's a1..a3, except where 2 or 3 hinges turn the later axes (below)
     if two or three:
         col2 = (1 - mode[:, 2] - mode[:, 3]) * axes0[..., 1, :] + mode[:, 2] * a2_c
         col3 = (1 - mode[:, 2] - mode[:, 3]) * axes0[..., 2, :] + mode[:, 2] * n12

@@ -46,7 +46,8 @@ def _skew_table() -> torch.Tensor:
 
 
 _TABLES = {"quat_product": _quat_product_table(), "rotation": _rotation_table(), "skew": _skew_table(),
-           "conj": torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=torch.float64), "eye3": torch.eye(3, dtype=torch.float64)}
+           "conj": torch.tensor([1.0, -1.0, -1.0, -1.0], dtype=torch.float64),
+           "eye3": torch.eye(3, dtype=torch.float64)}
 _CACHE: dict = {}
 
 
@@ -77,8 +78,9 @@ def mm(*mats: torch.Tensor) -> torch.Tensor:
 
 
 def _table_product(x: torch.Tensor, name: str) -> torch.Tensor:
-    """``x @ T`` for a constant table ``T`` and row vectors ``x (..., K)``."""
-    return mm(x.unsqueeze(-2), _table(name, x)).squeeze(-2)
+    """``x @ T`` for a constant table ``T (K, M)`` and row vectors ``x (..., K)``, fusable when compiled (see ``mm``)."""
+    table = _table(name, x)
+    return (x.unsqueeze(-1) * table).sum(-2) if torch.compiler.is_compiling() else x @ table
 
 
 def cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

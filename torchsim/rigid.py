@@ -77,7 +77,8 @@ def apply_pair_position(bodies: Bodies, inv: InverseInertia, a, b, r_a, r_b, p_l
     def quat_delta(theta, quat):
         return 0.5 * math.quat_mul(torch.cat((torch.zeros_like(theta[..., :1]), theta), -1), quat)
 
-    quat = scatter_pair(bodies.x_quat, a, b, quat_delta(dth_a, bodies.x_quat.index_select(1, a)), quat_delta(dth_b, bodies.x_quat.index_select(1, b)))
+    quat = scatter_pair(bodies.x_quat, a, b, quat_delta(dth_a, bodies.x_quat.index_select(1, a)),
+                        quat_delta(dth_b, bodies.x_quat.index_select(1, b)))
     return bodies._replace(x_pos=scatter_pair(bodies.x_pos, a, b, dx_a, dx_b), x_quat=math.normalize(quat))
 
 
@@ -110,7 +111,8 @@ def dof_rate_change(sys: System, axes: torch.Tensor, before: Bodies, after: Bodi
     d_ang = after.xd_ang - before.xd_ang
     d_vel = after.xd_vel - before.xd_vel
     hinge = sys.dof_is_hinge[:, None]
-    rel = torch.where(hinge, d_ang.index_select(1, child) - d_ang.index_select(1, parent), d_vel.index_select(1, child) - d_vel.index_select(1, parent))
+    rel = torch.where(hinge, d_ang.index_select(1, child) - d_ang.index_select(1, parent),
+                      d_vel.index_select(1, child) - d_vel.index_select(1, parent))
     return (axes * rel).sum(-1)
 
 

@@ -96,9 +96,13 @@ def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.I
     scale_a, scale_b = scale_a[..., None], scale_b[..., None]
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
     lam_n = active * con.depth / w_n
-    # where the contact point was at the start of the substep, on each body
-    prev_a = previous.x_pos.index_select(1, a) + math.quat_rotate(previous.x_quat.index_select(1, a), math.quat_rotate_inv(bodies.x_quat.index_select(1, a), r_a))
-    prev_b = previous.x_pos.index_select(1, b) + math.quat_rotate(previous.x_quat.index_select(1, b), math.quat_rotate_inv(bodies.x_quat.index_select(1, b), r_b))
+
+    def previous_point(idx, r):
+        """Where the contact point, carried by body ``idx``, was at the start of the substep."""
+        local = math.quat_rotate_inv(bodies.x_quat.index_select(1, idx), r)
+        return previous.x_pos.index_select(1, idx) + math.quat_rotate(previous.x_quat.index_select(1, idx), local)
+
+    prev_a, prev_b = previous_point(a, r_a), previous_point(b, r_b)
     slip = prev_b - prev_a  # (p - prev_a) - (p - prev_b)
     slip = slip - math.dot(slip, con.normal) * con.normal
     slip_len = math.safe_norm(slip)
