@@ -237,20 +237,19 @@ class Run:
         print(f"resumed from {path} at env step {self.env_steps}")
 
     # -- end of run
-    def finish(self) -> dict:
-        """Save the final checkpoint, plot the curves, render the policy and return a summary."""
+    def finish(self) -> None:
+        """Save the final checkpoint, plot the curves, render the policy and write ``summary.json``."""
         self.save()
         plot_curves(self.history, self.out_dir / "curves.png", f"{self.cfg.algo.name} {self.cfg.env.name}")
         if self.cfg.video.enabled:
             self.sync_eval_norm()
             _, _, qpos = evaluate(self.eval_env, self.actor, self.cfg.video.steps, record=True)
             render_gif(self.cfg.env.name, qpos, self.eval_env.base_env.dt, self.out_dir / "policy.gif")
-        summary = {"env_steps": self.env_steps, "wall_s": round(self.wall, 1),
+        self.summary = summary = {"env_steps": self.env_steps, "wall_s": round(self.wall, 1),
                    "env_steps_per_s": round(self.env_steps / max(self.wall, 1e-9), 1),
                    "final_eval_return": self.history["eval"][-1][2] if self.history["eval"] else None}
         (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
         print(f"done: {summary}; outputs in {self.out_dir}")
-        return summary
 
 
 def plot_curves(history: dict, path, title: str) -> None:

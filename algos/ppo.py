@@ -13,7 +13,7 @@ from torchrl.objectives.value import GAE
 from torchsim.algos.common import Run, make_actor, make_env, make_value, maybe_compile, obs_norm
 
 
-def train(cfg, out_dir) -> dict:
+def train(cfg, out_dir) -> Run:
     a, device = cfg.algo, torch.device(cfg.device)
     env = make_env(cfg, a.num_envs, device)
     actor = make_actor(env, a.policy_net, device)
@@ -24,7 +24,8 @@ def train(cfg, out_dir) -> dict:
     optim = torch.optim.Adam(loss_module.parameters(), lr=a.lr, eps=1e-5)
     run = Run(cfg, out_dir, {"loss": loss_module, "optim": optim, "obs_norm": obs_norm(env)}, actor,
               eval_env=make_env(cfg, cfg.eval.episodes, device), train_env=env)
-    collector = Collector(env, actor, frames_per_batch=a.num_envs * a.unroll, total_frames=-1, device=device)
+    collector = Collector(env, actor, frames_per_batch=a.num_envs * a.unroll, total_frames=-1, device=device,
+                          auto_register_policy_transforms=False)
     loss_fn = maybe_compile(loss_module, cfg)
     for data in collector:  # data: (num_envs, unroll)
         run.record_batch(data)
@@ -45,4 +46,5 @@ def train(cfg, out_dir) -> dict:
         if run.finished():
             break
     collector.shutdown()
-    return run.finish()
+    run.finish()
+    return run

@@ -12,7 +12,7 @@ from torchrl.objectives import SACLoss, SoftUpdate
 from torchsim.algos.common import Run, make_actor, make_env, make_value, maybe_compile, obs_norm
 
 
-def train(cfg, out_dir) -> dict:
+def train(cfg, out_dir) -> Run:
     a, device = cfg.algo, torch.device(cfg.device)
     env = make_env(cfg, a.num_envs, device)
     actor = make_actor(env, a.policy_net, device)
@@ -26,6 +26,7 @@ def train(cfg, out_dir) -> dict:
     run = Run(cfg, out_dir, {"loss": loss_module, "optim": optim, "obs_norm": obs_norm(env)}, actor,
               eval_env=make_env(cfg, cfg.eval.episodes, device), train_env=env)
     collector = Collector(env, actor, frames_per_batch=a.num_envs * a.unroll, total_frames=-1, device=device,
+                          auto_register_policy_transforms=False,
                           init_random_frames=0 if cfg.resume else a.random_frames)
     loss_fn = maybe_compile(loss_module, cfg)
     for data in collector:
@@ -43,4 +44,5 @@ def train(cfg, out_dir) -> dict:
         if run.finished():
             break
     collector.shutdown()
-    return run.finish()
+    run.finish()
+    return run

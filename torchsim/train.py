@@ -14,14 +14,14 @@ from omegaconf import DictConfig
 
 import torchsim.algos
 from torchsim.algos import ppo, sac
-from torchsim.algos.common import TrainingDiverged
+from torchsim.algos.common import Run, TrainingDiverged
 
 CONFIG_DIR = str(pathlib.Path(torchsim.algos.__file__).parent / "configs")
 RECIPES = {"ppo": ppo.train, "sac": sac.train}
 
 
-def run(cfg: DictConfig, out_dir) -> dict:
-    """Run the recipe ``cfg.algo.name`` with ``cfg``, writing into ``out_dir``; return its summary."""
+def run(cfg: DictConfig, out_dir) -> Run:
+    """Run the recipe ``cfg.algo.name`` with ``cfg``, writing into ``out_dir``; return the finished run."""
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     return RECIPES[cfg.algo.name](cfg, out_dir)
