@@ -28,8 +28,8 @@ Translation, element by element:
 
 Rejected with :class:`UnsupportedURDFError`: mesh collision geometry (``ignore_meshes=True`` drops it instead;
 the link keeps its inertial but touches nothing), ``<mimic>`` joints, ``floating``/``planar`` joints, closed loops
-(a link that is the child of two joints), several root links, joints naming unknown links, and limited joints
-with ``lower >= upper``.
+(a link that is the child of two joints), several root links, joints naming unknown links, movable joints without
+``<axis>`` (pytorch-kinematics and the URDF spec disagree on the default), and limited joints with ``lower >= upper``.
 """
 
 import os
@@ -115,6 +115,9 @@ def _parse(text: bytes):
         if j.type not in ("fixed", *_MJCF_JOINT):
             raise UnsupportedURDFError(
                 f"joint {j.name!r} of type {j.type!r}: supported types are fixed, revolute, continuous, prismatic")
+        if j.type != "fixed" and j.axis is None:  # the URDF default is x, pytorch-kinematics' is z
+            raise UnsupportedURDFError(f"joint {j.name!r} has no <axis>; write it explicitly (pytorch-kinematics "
+                                       "reads a missing axis as z, the URDF spec as x)")
         if j.type in ("revolute", "prismatic") and j.limit is not None and j.limit.lower >= j.limit.upper:
             raise UnsupportedURDFError(
                 f"joint {j.name!r}: limit lower {j.limit.lower} >= upper {j.limit.upper} (a missing lower/upper "
@@ -189,7 +192,7 @@ def _inertial(body, link):
 
 
 def _joint(body, actuators, joint, armature):
-    axis = np.array(joint.axis if joint.axis is not None else (1.0, 0.0, 0.0), dtype=float)  # URDF default: x
+    axis = np.array(joint.axis, dtype=float)
     el = ET.SubElement(body, "joint", name=joint.name, type=_MJCF_JOINT[joint.type], axis=_fmt(axis / np.linalg.norm(axis)),
                        armature=_fmt([armature]))
     if joint.type != "continuous" and joint.limit is not None:
