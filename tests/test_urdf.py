@@ -181,7 +181,8 @@ def test_pd_rollout_keeps_fk_consistent():
 
     Measured: xpbd with 4 iterations 0.37 mm / 6.5e-4 rad. The default spring method is far softer here: its joint
     springs scale with the light shoulder and upper-arm links while carrying up to 150 N m, 5.0 cm / 0.077 rad at
-    4 substeps, 4.3 mm / 6.5e-3 rad at 16 (docs/physics.md); xpbd with 1 iteration: 1.2 mm / 2.9e-3 rad.
+    4 substeps, 4.3 mm / 6.5e-3 rad at 16; xpbd with 1 iteration: 1.2 mm / 2.9e-3 rad (these three measured on 8 arms
+    without contacts; docs/physics.md).
     """
     sys = torchsim.load_urdf(UR5E, method="xpbd", xpbd_iterations=4, armature=ARMATURE, dtype=F64)
     kp = torch.tensor([2000.0] * 3 + [500.0] * 3, dtype=F64)

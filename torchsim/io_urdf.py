@@ -70,7 +70,7 @@ def load_urdf(source, timestep: float = 0.002, armature: float = 0.0, ignore_mes
         **options: passed to :func:`torchsim.load_mjcf` (``method``, ``substeps``, ``dtype``, ``device``, ...).
     """
     text = _read(source)
-    mjcf, links, joints = _translate(_parse(text), timestep, armature, ignore_meshes)
+    mjcf, links, joints = _translate(*_parse(text), timestep, armature, ignore_meshes)
     sys = load_mjcf(mjcf, **options)
     _check_against_pk(sys, text, links, joints)
     return sys
@@ -78,7 +78,7 @@ def load_urdf(source, timestep: float = 0.002, armature: float = 0.0, ignore_mes
 
 def urdf_to_mjcf(source, timestep: float = 0.002, armature: float = 0.0, ignore_meshes: bool = False) -> str:
     """The MJCF text :func:`load_urdf` builds its System from (e.g. to embed the robot in a scene)."""
-    return _translate(_parse(_read(source)), timestep, armature, ignore_meshes)[0]
+    return _translate(*_parse(_read(source)), timestep, armature, ignore_meshes)[0]
 
 
 def _read(source) -> bytes:
@@ -98,7 +98,7 @@ def _read(source) -> bytes:
 
 
 def _parse(text: bytes):
-    """The parsed ``urdf_parser_py`` Robot, checked to be one tree of supported joints."""
+    """The parsed ``urdf_parser_py`` Robot, checked to be one tree of supported joints, and its root link."""
     robot = pk.URDF.from_xml_string(text)
     parents = {}
     for j in robot.joints:
@@ -125,10 +125,10 @@ def _parse(text: bytes):
     roots = [name for name in robot.link_map if name not in parents]
     if len(roots) != 1:
         raise UnsupportedURDFError(f"a URDF must be one tree with one root link; found roots {roots}")
-    return robot
+    return robot, roots[0]
 
 
-def _translate(robot, timestep, armature, ignore_meshes):
+def _translate(robot, root, timestep, armature, ignore_meshes):
     """(MJCF text, link names in MuJoCo body order after the world, movable joint names in qpos order)."""
     mjcf = ET.Element("mujoco", model=robot.name or "urdf")
     ET.SubElement(mjcf, "compiler", angle="radian", inertiafromgeom="false", autolimits="true")
@@ -157,7 +157,6 @@ def _translate(robot, timestep, armature, ignore_meshes):
         for child in children.get(link_name, []):
             add(child.child, body, child)
 
-    root = next(name for name in robot.link_map if name not in {j.child for j in robot.joints})
     add(root, world, None)
     return ET.tostring(mjcf, encoding="unicode"), links, joints
 
