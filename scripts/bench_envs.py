@@ -35,6 +35,9 @@ def parse_args():
     p.add_argument("--steps", type=int, default=5, help="timed env steps per repeat")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: one per core)")
+    p.add_argument("--dynamic", action="store_true",
+                   help="compile with dynamic batch shapes: one compile per env for all batches > 1, instead of one "
+                        "per env and batch (the first compiled call of each env then carries the compile time)")
     p.add_argument("--out", default=None, help="also write the table as markdown here")
     return p.parse_args()
 
@@ -92,6 +95,7 @@ def main():
     substep_table = torchsim.pipeline.SUBSTEP
     eager_substep = dict(substep_table)
     for name in args.envs:
+        compiled_substep = {}
         for batch in args.batches:
             env = torchsim.envs.make(name, num_envs=batch)
             env.reset()
@@ -101,7 +105,10 @@ def main():
                 substep_table.update(eager_substep)
                 if mode == "compiled":
                     method = env.sys.method
-                    substep_table[method] = torch.compile(eager_substep[method], fullgraph=True, dynamic=False)
+                    if method not in compiled_substep or not args.dynamic:
+                        compiled_substep[method] = torch.compile(eager_substep[method], fullgraph=True,
+                                                                 dynamic=True if args.dynamic else False)
+                    substep_table[method] = compiled_substep[method]
                     start = time.perf_counter()
                     env.step(TensorDict(action=env.action_spec.rand(), batch_size=env.batch_size))
                     row["compile_s"] = time.perf_counter() - start
