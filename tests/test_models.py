@@ -11,10 +11,8 @@ from pathlib import Path
 
 import mujoco
 import pytest
-import torch
 
 import torchsim
-from models import F64
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))
 import check_models as cm  # noqa: E402
