@@ -27,10 +27,13 @@ def tiny(algo, *overrides):
 
 
 @pytest.mark.parametrize("algo, limit", [("ppo", 50), ("sac", 200)])
-@pytest.mark.timeout(300)
+@pytest.mark.timeout(420)
 def test_solves_inverted_pendulum(algo, limit, tmp_path):
-    """Deterministic eval episodes reach the episode limit, where random play and the untrained policy fall."""
-    cfg = config(f"algo={algo}", "env=inverted_pendulum", f"env.episode_length={limit}", "budget.minutes=2",
+    """Deterministic eval episodes reach the episode limit, where random play and the untrained policy fall.
+
+    Runs stop as soon as evaluation reaches the limit (about 2 minutes on the 2-core CI machine: PPO 110 s,
+    SAC 131 s); the 5-minute budget is only a cap so that a slower machine gets the same number of updates."""
+    cfg = config(f"algo={algo}", "env=inverted_pendulum", f"env.episode_length={limit}", "budget.minutes=5",
                  f"budget.eval_return={limit}", "eval.interval_steps=4096", *QUIET)
     trained = run(cfg, tmp_path)
     random_return, _, _ = evaluate(trained.eval_env, RandomPolicy(trained.eval_env.action_spec), limit)
