@@ -8,7 +8,8 @@ the ctrlrange, held for each env step of ``frames`` physics steps), float64, bat
   travel (final - initial position, norm) for each;
 - contact-free envs (reacher, pendulums): max |q - q_mujoco| over the horizon [rad or m];
 - pusher: max |q - q_mujoco| of the arm joints [rad], and the object's travel (it is pushed within the horizon);
-- ``mj dt/4``: the same error between MuJoCo at the model's timestep and MuJoCo at a 4x smaller one (MuJoCo's own
+- joint err: max |angle difference| of the limbs' hinges (below the root body) over the horizon [rad];
+- ``mj dt/4``: the same errors between MuJoCo at the model's timestep and MuJoCo at a 4x smaller one (MuJoCo's own
   timestep sensitivity, for scale).
 
     python scripts/check_models.py                          # all models, recommended substeps
@@ -141,6 +142,14 @@ def trajectory_error(name: str, a, b) -> float:
     return float(np.abs(qa - qb).max())
 
 
+def joint_angle_error(name: str, a, b) -> float:
+    """Max |angle difference| [rad] over the horizon of the hinges below the root body (the limbs' joints)."""
+    m = mujoco.MjModel.from_xml_path(path(name))
+    limb = [int(m.jnt_qposadr[j]) for j in range(m.njnt)
+            if m.jnt_type[j] == mujoco.mjtJoint.mjJNT_HINGE and m.jnt_bodyid[j] != 1]
+    return float(np.abs(a[0][:, limb] - b[0][:, limb]).max()) if limb else float("nan")
+
+
 def travel(name: str, rollout) -> float:
     """Root travel (contact envs) or the object's travel (pusher) over the horizon [m]; NaN for the others."""
     q, root = rollout[:2]
@@ -206,6 +215,7 @@ def main():
     torch.set_num_threads(1)
 
     header = (f"{'model':26s} {'pairs':>5s} {'fk err':>8s} {'dt':>6s} {'sub':>4s} {'ts vs mj':>9s} {'mj dt/4':>9s} "
+              f"{'joint err':>9s} {'mj dt/4':>8s} "
               f"{'travel ts':>9s} {'travel mj':>9s} {'s/step':>7s} {'stable':>6s}")
     print(header)
     for name in args.models:
@@ -223,6 +233,7 @@ def main():
             err = trajectory_error(name, ours, ref)
             stable = stability(name, sub, method=args.method) if args.stability else None
             print(f"{name:26s} {pairs:5d} {fk:8.1e} {m.opt.timestep:6.3f} {str(sub or 'def'):>4s} {err:9.2e} {mj_sens:9.2e} "
+                  f"{joint_angle_error(name, ours, ref):9.3f} {joint_angle_error(name, ref4, ref):8.3f} "
                   f"{travel(name, ours):9.4f} {travel(name, ref):9.4f} {per_step:7.3f} "
                   f"{'-' if stable is None else ('yes' if stable else 'NO'):>6s}" + ("  DIVERGED" if ours[2] else ""),
                   flush=True)
