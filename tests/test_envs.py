@@ -1,7 +1,5 @@
 """The TorchRL environment suite: specs, batching, partial and native resets, rewards, bad input, randomisation."""
 
-import math
-
 import mujoco
 import numpy as np
 import pytest
@@ -25,18 +23,11 @@ def test_list_and_make():
     assert isinstance(env, envs.Hopper) and env.batch_size == (3,)
 
 
-# The API test runs the physics at substeps of at most 2.5 ms instead of the models' 0.5 ms default: it checks the
-# env machinery, not accuracy, and eager mode pays per substep (CI time). Stability and accuracy at the default
-# substeps are tested per model in test_models.py.
-API_SUBSTEP = 2.5e-3
-
-
 @pytest.mark.parametrize("name", NAMES)
 def test_env_api(name):
     """check_env_specs; a 100-step random rollout with per-env partial resets stays finite; the Collector runs."""
     torch.manual_seed(0)
-    timestep = envs.make(name).sys.timestep
-    env = envs.make(name, num_envs=15, episode_length=7, substeps=math.ceil(timestep / API_SUBSTEP - 1e-9))
+    env = envs.make(name, num_envs=15, episode_length=7)  # the task's own physics settings
     check_env_specs(env, break_when_any_done="both")
     for spec in (env.observation_spec["observation"], env.action_spec, env.reward_spec, env.full_done_spec["done"]):
         assert spec.shape[0] == 15
