@@ -196,7 +196,8 @@ class TorchsimEnv(EnvBase):
             self.state = select_state(mask, fresh, self.state)
             self.step_count.copy_(torch.where(mask, 0, self.step_count))
         no = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
-        return self._output(self._observation(self.state, self._zero_ctrl()), done=no, terminated=no.clone(), truncated=no.clone())
+        return self._output(self._observation(self.state, self._zero_ctrl()),
+                            done=no, terminated=no.clone(), truncated=no.clone())
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")

@@ -209,11 +209,11 @@ def test_arm_and_pendulum_rewards_and_terminations():
 
 def test_bad_actions():
     env = envs.make("hopper", num_envs=4)
-    td = env.reset()
+    env.reset()
     for bad, match in ((torch.zeros(4, 2), r"shape \(4, 3\)"), (torch.zeros(4, 3, dtype=torch.float64), "dtype"),
                        (torch.zeros(3, 3), r"shape \(4, 3\)")):
         with pytest.raises(ValueError, match=match):
-            env._step(td.clone().set("action", bad) if bad.shape[0] == 4 else TensorDict(action=bad))
+            env._step(TensorDict(action=bad))
     # Out-of-range actions are clipped to the action spec's [-1, 1].
     q, qd = env._sample_init(4)
     clipped = _run(env, q, qd, torch.full((2, 4, 3), 1.0))
