@@ -10,6 +10,7 @@ import subprocess
 import sys
 import time
 import warnings
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -71,28 +72,45 @@ def make_value(env, cfg_net: DictConfig, device, with_action: bool) -> ValueOper
 
 
 # ------------------------------------------------------------------------------------------------------- evaluation
+class Evaluation(NamedTuple):
+    """Per env (B,): the return and length of its first episode, and, for goal-reaching tasks, the goal distance
+    [m] at the episode's end (else None); ``qpos (T, nq)``: env 0's trajectory when recorded (else None)."""
+
+    ret: torch.Tensor
+    length: torch.Tensor
+    final_distance: torch.Tensor | None
+    qpos: np.ndarray | None
+
+    def success_rate(self, success_distance: float) -> float:
+        return (self.final_distance < success_distance).float().mean().item()
+
+
 @torch.no_grad()
-def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False):
-    """Deterministic return and length of each env's first episode (at most ``max_steps`` steps), and, with
-    ``record``, env 0's ``q`` trajectory ``(T, nq)`` for a video. Finished envs keep stepping, masked out, so the
-    batch stays fixed; the loop stops once every env has finished."""
+def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False) -> Evaluation:
+    """Deterministic evaluation of each env's first episode (at most ``max_steps`` steps); with ``record``, env 0's
+    ``q`` trajectory for a video. Finished envs keep stepping, masked out, so the batch stays fixed; the loop stops
+    once every env has finished."""
     td = env.reset()
     alive = torch.ones(env.batch_size, dtype=torch.bool, device=env.device)
     ret = torch.zeros(env.batch_size, device=env.device)
     length = torch.zeros(env.batch_size, dtype=torch.long, device=env.device)
+    goal_task = "goal_distance" in env.observation_spec.keys()
+    distance = torch.full(env.batch_size, float("nan"), device=env.device) if goal_task else None
     qpos = [env.base_env.state.q[0].cpu()]
     with set_exploration_type(ExplorationType.DETERMINISTIC):
         for t in range(max_steps):
             td = env.step(policy(td))
             ret += td["next", "reward"].squeeze(-1) * alive
             length += alive
+            if goal_task:
+                distance = torch.where(alive, td["next", "goal_distance"].squeeze(-1), distance)
             if record and bool(alive[0]):
                 qpos.append(env.base_env.state.q[0].cpu())
             alive &= ~td["next", "done"].squeeze(-1)
             if t % 10 == 9 and not alive.any():  # one host sync every 10 steps
                 break
             td = env.step_mdp(td)
-    return ret, length, (torch.stack(qpos).double().numpy() if record else None)
+    return Evaluation(ret, length, distance, torch.stack(qpos).double().numpy() if record else None)
 
 
 def load_policy(ckpt: dict, env: TransformedEnv, device) -> ProbabilisticActor:
@@ -135,7 +153,7 @@ class Run:
         self.eval_env, self.train_env = eval_env, train_env
         self.logger = get_logger(cfg.logger, logger_name=str(self.out_dir), experiment_name="logs")
         self.env_steps, self.iteration, self.elapsed = 0, 0, 0.0
-        self.history = {"train": [], "eval": []}  # rows (env_steps, wall_s, return)
+        self.history = {"train": [], "eval": [], "eval_success": []}  # rows (env_steps, wall_s, value)
         self.recent = collections.deque(maxlen=cfg.recent_episodes)
         self.next_eval = 0
         if cfg.resume:
@@ -187,7 +205,7 @@ class Run:
                 f"{sps:7.0f} steps/s  return {recent:8.2f}  reward/step {self.step_reward:7.3f}  "
                 f"{self.wall / 60:5.1f} min")
         if self.env_steps >= self.next_eval or self.finished():
-            line += f"  eval {self.evaluate():8.2f}"
+            line += self.evaluate()
             self.next_eval = self.env_steps + self.cfg.eval.interval_steps
         print(line, flush=True)
         if self.iteration % self.cfg.checkpoint_every == 0 or self.finished():
@@ -198,13 +216,22 @@ class Run:
             for k, v in metrics.items():
                 self.logger.log_scalar(k, v, step=self.env_steps)
 
-    def evaluate(self) -> float:
+    def evaluate(self) -> str:
+        """Evaluate, record and log; return the progress-line text (return, and success for goal tasks)."""
         self.sync_eval_norm()
-        ret, length, _ = evaluate(self.eval_env, self.actor, self.cfg.eval.max_steps)
-        mean = ret.mean().item()
+        result = evaluate(self.eval_env, self.actor, self.cfg.eval.max_steps)
+        mean = result.ret.mean().item()
         self.history["eval"].append((self.env_steps, self.wall, mean))
-        self.log({"eval/return": mean, "eval/episode_length": length.float().mean().item()})
-        return mean
+        metrics = {"eval/return": mean, "eval/episode_length": result.length.float().mean().item()}
+        text = f"  eval {mean:8.2f}"
+        if result.final_distance is not None:
+            success = result.success_rate(self.eval_env.base_env.success_distance)
+            self.history["eval_success"].append((self.env_steps, self.wall, success))
+            metrics.update({"eval/success_rate": success,
+                            "eval/final_distance": result.final_distance.mean().item()})
+            text += f" (success {success:.0%}, final distance {result.final_distance.median().item():.3f} m)"
+        self.log(metrics)
+        return text
 
     def sync_eval_norm(self) -> None:
         """Evaluate with the training normaliser's current statistics, frozen."""
@@ -243,31 +270,42 @@ class Run:
         plot_curves(self.history, self.out_dir / "curves.png", f"{self.cfg.algo.name} {self.cfg.env.name}")
         if self.cfg.video.enabled:
             self.sync_eval_norm()
-            _, _, qpos = evaluate(self.eval_env, self.actor, self.cfg.video.steps, record=True)
+            qpos = evaluate(self.eval_env, self.actor, self.cfg.video.steps, record=True).qpos
             render_gif(self.cfg.env.name, qpos, self.eval_env.base_env.dt, self.out_dir / "policy.gif")
         self.summary = summary = {"env_steps": self.env_steps, "wall_s": round(self.wall, 1),
                    "env_steps_per_s": round(self.env_steps / max(self.wall, 1e-9), 1),
                    "final_eval_return": self.history["eval"][-1][2] if self.history["eval"] else None}
+        if self.history["eval_success"]:
+            summary["final_eval_success_rate"] = self.history["eval_success"][-1][2]
         (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
         print(f"done: {summary}; outputs in {self.out_dir}")
 
 
 def plot_curves(history: dict, path, title: str) -> None:
-    """Eval and train return against env steps and against wall-clock minutes, side by side (PNG)."""
+    """Eval and train return against env steps and against wall-clock minutes, side by side (PNG); for goal-reaching
+    tasks a third panel shows the evaluation success rate against env steps."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.8))
+    goal_task = bool(history.get("eval_success"))
+    fig, axes = plt.subplots(1, 3 if goal_task else 2, figsize=(15 if goal_task else 10, 3.8))
     for key, style in (("eval", "o-"), ("train", "-")):
         rows = np.array(history[key]).reshape(-1, 3)
         axes[0].plot(rows[:, 0], rows[:, 2], style, label=f"{key} return")
         axes[1].plot(rows[:, 1] / 60, rows[:, 2], style, label=f"{key} return")
     axes[0].set_xlabel("env steps")
     axes[1].set_xlabel("wall-clock (min)")
-    for ax in axes:
+    for ax in axes[:2]:
         ax.set_ylabel("return")
+    if goal_task:
+        rows = np.array(history["eval_success"])
+        axes[2].plot(rows[:, 0], rows[:, 2], "o-", label="eval success rate")
+        axes[2].set_xlabel("env steps")
+        axes[2].set_ylabel("success rate")
+        axes[2].set_ylim(-0.02, 1.02)
+    for ax in axes:
         ax.grid(alpha=0.3)
         ax.legend()
     fig.suptitle(title)

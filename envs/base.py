@@ -58,6 +58,9 @@ class TorchsimEnv(EnvBase):
     named_bodies: tuple = ()
     #: Observation size (checked against ``_observation`` at construction).
     observation_size: int
+    #: Goal-reaching tasks set this [m]: an episode succeeds when it ends with ``_goal_distance`` below it. The env
+    #: then also emits ``goal_distance`` (B, 1) next to every observation (None: not a goal-reaching task).
+    success_distance: float | None = None
 
     def __init__(self, num_envs: int = 1, *, device="cpu", dtype=torch.float32, episode_length: int = 1000,
                  native_autoreset: bool = False, method: str = "spring", substeps: int | None = None):
@@ -112,6 +115,10 @@ class TorchsimEnv(EnvBase):
         """``(B,)`` bool: the episode ended in ``state`` (default: never)."""
         return torch.zeros_like(state.diverged)
 
+    def _goal_distance(self, state: State) -> torch.Tensor:
+        """``(B,)`` distance [m] between the effector and the goal (tasks that set ``success_distance``)."""
+        raise NotImplementedError
+
     # -------------------------------------------------------------------------------------------------- helpers
     def _noise(self, spec, shape) -> torch.Tensor:
         kind, scale = spec
@@ -145,13 +152,20 @@ class TorchsimEnv(EnvBase):
         shape, dev = self.batch_size, self.device
         self.observation_spec = Composite(
             observation=Unbounded((*shape, self.observation_size), dtype=dtype, device=dev), shape=shape)
+        if self.success_distance is not None:
+            self.observation_spec["goal_distance"] = Unbounded((*shape, 1), dtype=dtype, device=dev)
         self.action_spec = Bounded(-1.0, 1.0, (*shape, self.sys.nu), dtype=dtype, device=dev)
         self.reward_spec = Unbounded((*shape, 1), dtype=dtype, device=dev)
         flag = lambda: Categorical(2, (*shape, 1), dtype=torch.bool, device=dev)  # noqa: E731
         self.full_done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=shape)
 
-    def _output(self, obs, **fields) -> TensorDict:
-        return TensorDict(observation=obs, **fields, batch_size=self.batch_size, device=self.device)
+    def _output(self, state: State, ctrl: torch.Tensor, **fields) -> TensorDict:
+        """The TensorDict an env emits in ``state`` reached under ``ctrl``: observation (+ goal distance) and
+        ``fields``."""
+        if self.success_distance is not None:
+            fields["goal_distance"] = self._goal_distance(state)[:, None]
+        return TensorDict(observation=self._observation(state, ctrl), **fields, batch_size=self.batch_size,
+                          device=self.device)
 
     # ---------------------------------------------------------------------------------------------- public API
     def set_state(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
@@ -196,8 +210,7 @@ class TorchsimEnv(EnvBase):
             self.state = select_state(mask, fresh, self.state)
             self.step_count.copy_(torch.where(mask, 0, self.step_count))
         no = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
-        return self._output(self._observation(self.state, self._zero_ctrl()),
-                            done=no, terminated=no.clone(), truncated=no.clone())
+        return self._output(self.state, self._zero_ctrl(), done=no, terminated=no.clone(), truncated=no.clone())
 
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
@@ -217,8 +230,8 @@ class TorchsimEnv(EnvBase):
             self.step_count.copy_(torch.where(done, 0, self.step_count))
             ctrl = torch.where(done[:, None], 0.0, ctrl)
         self.state = state
-        return self._output(self._observation(state, ctrl), reward=reward[:, None].to(self.sys.dtype),
-                            done=done[:, None], terminated=terminated[:, None], truncated=truncated[:, None])
+        return self._output(state, ctrl, reward=reward[:, None].to(self.sys.dtype), done=done[:, None],
+                            terminated=terminated[:, None], truncated=truncated[:, None])
 
     def mj_body_id(self, name: str) -> int:
         """Index of the MuJoCo body ``name`` (for :func:`torchsim.mj_body_poses`); a clear error if absent."""

@@ -12,6 +12,7 @@ class Reacher(TorchsimEnv):
 
     Observation (11): cos and sin of the 2 arm angles, target x/y (``q[2:4]``), the 2 arm rates, fingertip minus
     target (3). Action (2): shoulder and elbow motors. Reward: ``-|fingertip - target| - |a|^2``. No termination.
+    Success: the fingertip ends the episode within 2 cm of the target (``goal_distance`` is emitted every step).
     Reset: arm angles U(-0.1, 0.1) about zero and rates U(-0.005, 0.005); the target at radius 0.2 U(0, 1) and a
     uniform random angle, at rest. The model's links are 10x denser than the standard file's (the spring method
     diverges with the standard 1-kg-m^2 armature on links 7700x lighter); in MuJoCo that changes the arm's motion
@@ -24,6 +25,7 @@ class Reacher(TorchsimEnv):
     observation_size = 11
 
     named_bodies = ("fingertip", "target")
+    success_distance = 0.02
 
     def _sample_init(self, n):
         q = self.init_q.expand(n, -1) + self._noise(("uniform", 0.1), (n, self.sys.nq))
@@ -42,8 +44,11 @@ class Reacher(TorchsimEnv):
         return torch.cat((torch.cos(angles), torch.sin(angles), state.q[:, 2:4], state.qd[:, :2],
                           self._tip_minus_target(state)), -1)
 
+    def _goal_distance(self, state):
+        return self._tip_minus_target(state).norm(dim=-1)
+
     def _reward(self, before, after, ctrl):
-        return -self._tip_minus_target(after).norm(dim=-1) - (ctrl * ctrl).sum(-1)
+        return -self._goal_distance(after) - (ctrl * ctrl).sum(-1)
 
 
 class Pusher(TorchsimEnv):

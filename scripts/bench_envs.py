@@ -92,30 +92,23 @@ def main():
     log(f"torch {torch.__version__}, mujoco {mujoco.__version__}, {torch.get_num_threads()} torch threads, "
         f"{os.cpu_count()} cores; float32 CPU; {args.steps} env steps x {args.repeats} repeats (median)")
     rows = []
-    substep_table = torchsim.pipeline.SUBSTEP
-    eager_substep = dict(substep_table)
     for name in args.envs:
-        compiled_substep = {}
+        torch._dynamo.reset()  # each env compiles its own graphs (one per env with --dynamic)
         for batch in args.batches:
             env = torchsim.envs.make(name, num_envs=batch)
             env.reset()
             row = {"env": name, "batch": batch, "frame_skip": env.frame_skip, "substeps": env.sys.substeps,
                    "dt": env.dt}
             for mode in args.modes:
-                substep_table.update(eager_substep)
+                torchsim.compile_substeps(mode == "compiled", dynamic=args.dynamic)
                 if mode == "compiled":
-                    method = env.sys.method
-                    if method not in compiled_substep or not args.dynamic:
-                        compiled_substep[method] = torch.compile(eager_substep[method], fullgraph=True,
-                                                                 dynamic=True if args.dynamic else False)
-                    substep_table[method] = compiled_substep[method]
                     start = time.perf_counter()
                     env.step(TensorDict(action=env.action_spec.rand(), batch_size=env.batch_size))
                     row["compile_s"] = time.perf_counter() - start
                 row[mode] = time_torchsim(env, args.steps, args.repeats)
                 log(f"{name:>25} batch {batch:>5} {mode:>8}: {row[mode]:>10,.0f} env-steps/s"
                     + (f" (compile {row['compile_s']:.0f} s)" if mode == "compiled" else ""))
-            substep_table.update(eager_substep)
+            torchsim.compile_substeps(False)
             row["mujoco"] = time_mujoco(env, batch, args.steps, args.repeats)
             log(f"{name:>25} batch {batch:>5}   MuJoCo: {row['mujoco']:>10,.0f} env-steps/s")
             rows.append(row)

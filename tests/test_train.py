@@ -36,7 +36,7 @@ def test_solves_inverted_pendulum(algo, limit, tmp_path):
     cfg = config(f"algo={algo}", "env=inverted_pendulum", f"env.episode_length={limit}", "budget.minutes=5",
                  f"budget.eval_return={limit}", "eval.interval_steps=4096", *QUIET)
     trained = run(cfg, tmp_path)
-    random_return, _, _ = evaluate(trained.eval_env, RandomPolicy(trained.eval_env.action_spec), limit)
+    random_return = evaluate(trained.eval_env, RandomPolicy(trained.eval_env.action_spec), limit).ret
     untrained_return = trained.history["eval"][0][2]
     final = trained.history["eval"][-1][2]
     print(f"{algo}: random {random_return.mean():.1f}, untrained {untrained_return:.1f}, trained {final:.1f} "
@@ -54,10 +54,10 @@ def test_checkpoint_round_trip_and_resume(tmp_path):
         assert torch.equal(a, b), name
     trained.sync_eval_norm()
     torch.manual_seed(1)
-    ret_a, _, _ = evaluate(trained.eval_env, trained.actor, 5)
+    ret_a = evaluate(trained.eval_env, trained.actor, 5).ret
     obs = trained.eval_env.reset()
     torch.manual_seed(1)
-    ret_b, _, _ = evaluate(env, actor, 5)
+    ret_b = evaluate(env, actor, 5).ret
     assert torch.equal(ret_a, ret_b)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         assert torch.equal(trained.actor(obs.clone())["action"], actor(obs.clone())["action"])

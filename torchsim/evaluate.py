@@ -1,7 +1,8 @@
 """Evaluate (and render) a trained policy: ``python -m torchsim.evaluate checkpoint=<run>/checkpoints/last.pt
 [episodes=16] [max_steps=N] [video=true] [device=cpu]``.
 
-Prints the deterministic policy's mean return and episode length over ``episodes`` envs; ``video=true`` writes
+Prints the deterministic policy's mean return and episode length over ``episodes`` envs (and, for goal-reaching
+tasks, the success rate and median final goal distance); ``video=true`` writes
 ``eval.gif`` of env 0 next to the checkpoint's run dir.
 """
 
@@ -24,13 +25,16 @@ def main(argv: list[str]) -> dict:
     cfg = OmegaConf.create(ckpt["cfg"])
     env = make_env(cfg, args.episodes, args.device)
     actor = load_policy(ckpt, env, args.device)
-    ret, length, qpos = evaluate(env, actor, args.max_steps or cfg.eval.max_steps, record=args.video)
+    ev = evaluate(env, actor, args.max_steps or cfg.eval.max_steps, record=args.video)
     result = {"env": cfg.env.name, "algo": cfg.algo.name, "env_steps_trained": ckpt["counters"]["env_steps"],
-              "return_mean": ret.mean().item(), "return_std": ret.std().item(),
-              "episode_length_mean": length.float().mean().item()}
+              "return_mean": ev.ret.mean().item(), "return_std": ev.ret.std().item(),
+              "episode_length_mean": ev.length.float().mean().item()}
+    if ev.final_distance is not None:
+        result["success_rate"] = ev.success_rate(env.base_env.success_distance)
+        result["final_distance_median"] = ev.final_distance.median().item()
     print(result)
     if args.video:
-        render_gif(cfg.env.name, qpos, env.base_env.dt, pathlib.Path(args.checkpoint).parent.parent / "eval.gif")
+        render_gif(cfg.env.name, ev.qpos, env.base_env.dt, pathlib.Path(args.checkpoint).parent.parent / "eval.gif")
     return result
 
 

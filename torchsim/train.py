@@ -12,6 +12,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
+import torchsim
 import torchsim.algos
 from torchsim.algos import ppo, sac
 from torchsim.algos.common import Run, TrainingDiverged
@@ -24,6 +25,7 @@ def run(cfg: DictConfig, out_dir) -> Run:
     """Run the recipe ``cfg.algo.name`` with ``cfg``, writing into ``out_dir``; return the finished run."""
     torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
+    torchsim.compile_substeps(cfg.compile)
     return RECIPES[cfg.algo.name](cfg, out_dir)
 
 
