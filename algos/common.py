@@ -3,7 +3,6 @@ logging, checkpoints, budget, plots and the policy video of one training run).""
 
 import collections
 import json
-import math
 import os
 import pathlib
 import subprocess
@@ -182,15 +181,28 @@ class Run:
         self.recent.extend(returns.tolist())
         self.step_reward = data["next", "reward"].mean().item()
 
+    def check_update(self, losses, grad_norm: torch.Tensor, minibatch) -> None:
+        """Before each optimiser step: stop if a loss term or the gradient norm is non-finite.
+
+        Checking every minibatch (not just the iteration's last) stops before a bad step reaches the weights, so
+        the networks and the last checkpoint stay good; the offending minibatch is saved for diagnosis."""
+        values = {**{k: v.detach() for k, v in losses.items() if v.numel() == 1}, "grad_norm": grad_norm}
+        finite = torch.isfinite(torch.stack([v.reshape(()).float() for v in values.values()]))
+        if bool(finite.all()):
+            return
+        bad = [k for k, ok in zip(values, finite.tolist()) if not ok]
+        saved = self.out_dir / "diverged_minibatch.pt"
+        saved.parent.mkdir(parents=True, exist_ok=True)
+        torch.save(minibatch.detach().cpu(), saved)
+        ckpt = self.out_dir / "checkpoints" / "last.pt"
+        raise TrainingDiverged(f"non-finite {', '.join(bad)} at env step {self.env_steps} (iteration "
+                               f"{self.iteration + 1}); minibatch saved to {saved}; last good checkpoint: "
+                               f"{ckpt if ckpt.exists() else 'none'}")
+
     def end_iteration(self, losses: dict) -> None:
-        """After an update: stop on a non-finite loss, log, print, evaluate and checkpoint when due."""
+        """After an update: log, print, evaluate and checkpoint when due."""
         self.iteration += 1
         losses = {k: float(v) for k, v in losses.items()}
-        bad = [k for k, v in losses.items() if not math.isfinite(v)]
-        if bad:
-            ckpt = self.out_dir / "checkpoints" / "last.pt"
-            raise TrainingDiverged(f"non-finite {', '.join(bad)} at env step {self.env_steps} (iteration "
-                                   f"{self.iteration}); last good checkpoint: {ckpt if ckpt.exists() else 'none'}")
         now = time.perf_counter()
         sps = (self.env_steps - self.steps_last) / max(now - self.t_last, 1e-9)
         self.t_last, self.steps_last = now, self.env_steps

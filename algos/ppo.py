@@ -35,13 +35,14 @@ def train(cfg, out_dir) -> Run:
                 gae(data)
             flat = data.reshape(-1)
             for idx in torch.randperm(flat.numel(), device=device).split(flat.numel() // a.minibatches):
-                losses = loss_fn(flat[idx])
+                minibatch = flat[idx]
+                losses = loss_fn(minibatch)
                 loss = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
                 optim.zero_grad()
                 loss.backward()
-                nn.utils.clip_grad_norm_(loss_module.parameters(), a.max_grad_norm)
+                grad_norm = nn.utils.clip_grad_norm_(loss_module.parameters(), a.max_grad_norm)
+                run.check_update(losses, grad_norm, minibatch)
                 optim.step()
-        # a non-finite update poisons the weights, so the last minibatch's losses show it
         run.end_iteration(losses.select("loss_objective", "loss_critic", "loss_entropy").detach())
         if run.finished():
             break

@@ -5,6 +5,7 @@ them to the buffer and runs ``updates_per_iter`` gradient steps on minibatches o
 """
 
 import torch
+from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate
@@ -34,10 +35,13 @@ def train(cfg, out_dir) -> Run:
         data["next", "reward"] = data["next", "reward"] * a.reward_scale
         buffer.extend(data.reshape(-1))
         for _ in range(a.updates_per_iter):
-            losses = loss_fn(buffer.sample())
+            minibatch = buffer.sample()
+            losses = loss_fn(minibatch)
             loss = losses["loss_actor"] + losses["loss_qvalue"] + losses["loss_alpha"]
             optim.zero_grad()
             loss.backward()
+            grad_norm = nn.utils.clip_grad_norm_(loss_module.parameters(), float("inf"))  # measures, never clips
+            run.check_update(losses, grad_norm, minibatch)
             optim.step()
             target_update.step()
         run.end_iteration(losses.select("loss_actor", "loss_qvalue", "loss_alpha", "alpha").detach())
