@@ -34,15 +34,28 @@ class TrainingDiverged(RuntimeError):
 
 
 # ------------------------------------------------------------------------------------------------------ environment
+class RunningNorm(VecNormV2):
+    """``VecNormV2`` with a variance that cannot go negative.
+
+    VecNormV2 keeps running means of x and x² and takes ``E[x²] - E[x]²`` as the variance. For a constant feature
+    (the body masses in Humanoid's observation) float32 rounding can make that slightly negative, its square root
+    NaN, and one NaN feature then poisons the policy (seen at ~80k steps of Humanoid PPO). Clamping ``E[x²]`` at
+    ``E[x]²`` keeps the variance at >= 0, so a constant feature is scaled by ``eps`` as intended.
+    """
+
+    def _norm(self, data, loc, var, count):
+        return super()._norm(data, loc, var.apply(lambda v, m: torch.maximum(v, m * m), loc), count)
+
+
 def make_env(cfg: DictConfig, num_envs: int, device) -> TransformedEnv:
-    """The task batched over ``num_envs`` with running observation normalisation (``VecNormV2``, statistics over the
-    batch too), episode return (``episode_reward``) and length (``step_count``)."""
+    """The task batched over ``num_envs`` with running observation normalisation (``RunningNorm``, statistics over
+    the batch too), episode return (``episode_reward``) and length (``step_count``)."""
     base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length)
-    norm = VecNormV2(in_keys=["observation"], decay=cfg.obs_norm_decay, eps=1e-4, reduce_batch_dims=True)
+    norm = RunningNorm(in_keys=["observation"], decay=cfg.obs_norm_decay, eps=1e-4, reduce_batch_dims=True)
     return TransformedEnv(base, Compose(norm, RewardSum(), StepCounter()))
 
 
-def obs_norm(env: TransformedEnv) -> VecNormV2:
+def obs_norm(env: TransformedEnv) -> RunningNorm:
     return env.transform[0]
 
 

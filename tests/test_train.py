@@ -3,11 +3,13 @@ every recipe runs through Hydra overrides, and a diverging run stops naming its 
 
 import pytest
 import torch
+from tensordict import TensorDict
 from hydra import compose, initialize_config_dir
 from torchrl.envs import ExplorationType, set_exploration_type
+from torchrl.envs.transforms import VecNormV2
 from torchrl.envs.utils import RandomPolicy
 
-from torchsim.algos.common import TrainingDiverged, evaluate, load_policy, make_env
+from torchsim.algos.common import RunningNorm, TrainingDiverged, evaluate, load_policy, make_env
 from torchsim.train import CONFIG_DIR, run
 
 QUIET = ["video.enabled=false", "logger=''"]
@@ -83,3 +85,25 @@ def test_bad_config_fails_fast():
 def test_divergence_stops_naming_the_step(tmp_path):
     with pytest.raises(TrainingDiverged, match="at env step 16"):
         run(tiny("ppo", "algo.reward_scale=nan"), tmp_path)
+
+
+def test_running_norm_keeps_constant_features_finite():
+    """TorchRL's VecNormV2 takes ``E[x^2] - E[x]^2`` of decayed running means as the variance. For a constant
+    feature (Humanoid's body masses) that shrinks towards zero and rounds below it, and its square root is NaN: this
+    stopped Humanoid PPO at 87k env steps. ``RunningNorm`` must stay finite and agree with VecNormV2 elsewhere.
+    Decay 0.99 reaches that regime within tens of updates (0.9999, the training default, within ~1e5)."""
+    constants = torch.linspace(0.3, 9.7, 40)
+    outputs = {}
+    for cls in (VecNormV2, RunningNorm):
+        torch.manual_seed(0)
+        norm = cls(in_keys=["observation"], decay=0.99, eps=1e-4, reduce_batch_dims=True)
+        for _ in range(200):
+            x = torch.cat((constants.expand(64, -1), torch.randn(64, 2)), -1)
+            out = norm._step(TensorDict(observation=x.clone(), batch_size=[64]),
+                             TensorDict(observation=x.clone(), batch_size=[64]))["observation"]
+        outputs[cls] = out
+    assert not torch.isfinite(outputs[VecNormV2]).all()  # the failure this guards against does occur upstream
+    assert torch.isfinite(outputs[RunningNorm]).all()
+    # a constant c normalises to (c - mean) / eps: float32 rounding of the mean (~1e-7 c) over eps = 1e-4 is ~1e-3 c
+    assert outputs[RunningNorm][:, :40].abs().max() < 1e-2 * constants.max()
+    torch.testing.assert_close(outputs[RunningNorm][:, 40:], outputs[VecNormV2][:, 40:])
