@@ -22,11 +22,14 @@ from torchsim.envs.base import TorchsimEnv  # noqa: E402
 from torchsim.envs.locomotion import Ant, HalfCheetah, Hopper, Humanoid, Walker2d  # noqa: E402
 from torchsim.envs.manipulation import Pusher, Reacher  # noqa: E402
 from torchsim.envs.pendulums import InvertedDoublePendulum, InvertedPendulum  # noqa: E402
+from torchsim.envs.targets import Fetch, Grasp  # noqa: E402
+from torchsim.envs.ur5e import UR5eReach  # noqa: E402
 
 ENVS = {
     "ant": Ant, "halfcheetah": HalfCheetah, "humanoid": Humanoid, "reacher": Reacher, "hopper": Hopper,
     "walker2d": Walker2d, "inverted_pendulum": InvertedPendulum,
-    "inverted_double_pendulum": InvertedDoublePendulum, "pusher": Pusher,
+    "inverted_double_pendulum": InvertedDoublePendulum, "pusher": Pusher, "ur5e_reach": UR5eReach,
+    "grasp": Grasp, "fetch": Fetch,
 }
 
 

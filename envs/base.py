@@ -1,9 +1,12 @@
 """One TorchRL environment class for every torchsim task: specs, batched stepping, partial and native resets.
 
-A task subclass names its model and frame count and defines four small functions of the simulator state:
-``_sample_init`` (reset distribution), ``_observation``, ``_reward`` and ``_terminated``. Everything here is
-batched over ``num_envs`` and free of host syncs (no ``.item()``, no boolean indexing, no data-dependent Python
-branches), so ``step`` and ``step_and_maybe_reset`` trace into one graph.
+A task subclass names its model (MJCF, or URDF through ``torchsim.io_urdf``) and frame count and defines four
+small functions of the simulator state: ``_sample_init`` (reset distribution), ``_observation``, ``_reward`` and
+``_terminated``. Tasks with per-env goals that are not bodies of the model (a reach target, a target that respawns
+when hit) keep them in ``self.task``, a ``(num_envs, task_size)`` tensor drawn by ``_sample_task`` at every reset
+and advanced by ``_next_task`` after every step. Everything here is batched over ``num_envs`` and free of host
+syncs (no ``.item()``, no boolean indexing, no data-dependent Python branches), so ``step`` and
+``step_and_maybe_reset`` trace into one graph.
 """
 
 import mujoco
@@ -14,6 +17,7 @@ from torchrl.envs import EnvBase
 
 import torchsim
 from torchsim.envs import asset_path
+from torchsim.io_urdf import urdf_to_mjcf
 from torchsim.state import State
 
 #: Randomisable physical parameters and what they scale (see ``TorchsimEnv.set_physics``).
@@ -43,11 +47,17 @@ class TorchsimEnv(EnvBase):
             its ``("next", "observation")``; use with ``GAE(..., auto_reset_env=True)``. This makes
             ``step_and_maybe_reset`` free of host syncs so it compiles as one graph.
         method, substeps: physics solution method and substeps per model timestep (``torchsim.load_mjcf``;
-            default: the task's ``substeps``).
+            default: the task's ``method`` and ``substeps``).
     """
 
+    #: The model asset in ``envs/assets``: MJCF (``.xml``) or URDF (``.urdf``, translated by ``urdf_to_mjcf``).
     model_file: str
     frame_skip: int
+    #: Physics solution method (``torchsim.load_mjcf``) and XPBD projection passes, chosen per task.
+    method: str = "spring"
+    xpbd_iterations: int = 1
+    #: URDF models only: rotor inertia [kg m^2] added to every joint (URDF has no armature).
+    urdf_armature: float = 0.0
     #: Physics substeps per model timestep, chosen per task by measurement (None: ``load_mjcf``'s 0.5 ms default).
     substeps: int | None = None
     #: Reset noise added to the initial ``q`` / ``qd``: (distribution, scale), distribution "uniform" (+-scale)
@@ -61,16 +71,18 @@ class TorchsimEnv(EnvBase):
     #: Goal-reaching tasks set this [m]: an episode succeeds when it ends with ``_goal_distance`` below it. The env
     #: then also emits ``goal_distance`` (B, 1) next to every observation (None: not a goal-reaching task).
     success_distance: float | None = None
+    #: Floats of per-env task state (``self.task``) beside the physics; 0 for tasks whose goal is in the model.
+    task_size: int = 0
 
     def __init__(self, num_envs: int = 1, *, device="cpu", dtype=torch.float32, episode_length: int = 1000,
-                 native_autoreset: bool = False, method: str = "spring", substeps: int | None = None):
+                 native_autoreset: bool = False, method: str | None = None, substeps: int | None = None):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs}")
         super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
-        self.mj_model = mujoco.MjModel.from_xml_path(str(asset_path(self.model_file)))
-        substeps = substeps or self.substeps
-        self.base_sys = torchsim.load_mjcf(asset_path(self.model_file), method=method, substeps=substeps,
-                                           dtype=dtype, device=self.device)
+        xml = self._model_xml()
+        self.mj_model = mujoco.MjModel.from_xml_string(xml)
+        self.base_sys = torchsim.load_mjcf(xml, method=method or self.method, substeps=substeps or self.substeps,
+                                           xpbd_iterations=self.xpbd_iterations, dtype=dtype, device=self.device)
         self.sys = self.base_sys
         self.episode_length = int(episode_length)
         self.dt = self.frame_skip * self.sys.timestep
@@ -83,8 +95,10 @@ class TorchsimEnv(EnvBase):
         ctrl_range = torch.as_tensor(self.mj_model.actuator_ctrlrange, dtype=dtype, device=self.device)
         self.register_buffer("ctrl_low", ctrl_range[:, 0])
         self.register_buffer("ctrl_high", ctrl_range[:, 1])
+        self._setup()
         self._make_specs(dtype)
         self.state = self._initial_state()
+        self.task = self._sample_task(self.state)
         obs = self._observation(self.state, self._zero_ctrl())
         if obs.shape != (*self.batch_size, self.observation_size):
             raise RuntimeError(f"{type(self).__name__}: observation has shape {tuple(obs.shape)}, expected "
@@ -92,6 +106,18 @@ class TorchsimEnv(EnvBase):
         self.register_buffer("step_count", torch.zeros(self.batch_size, dtype=torch.long, device=self.device))
 
     # ----------------------------------------------------------------------------------------------- task hooks
+    def _model_xml(self) -> str:
+        """MJCF text of the simulated model (MuJoCo's ``MjModel`` and the torchsim ``System`` are both built from
+        it): the MJCF asset, or the URDF asset translated by ``urdf_to_mjcf`` with ``urdf_armature``."""
+        path = asset_path(self.model_file)
+        if path.suffix == ".urdf":
+            return urdf_to_mjcf(path, armature=self.urdf_armature)
+        return path.read_text()
+
+    def _setup(self) -> None:
+        """Precompute task constants that depend on the loaded model (``self.sys``, ``self.mj_model``); called
+        once, before the first reset. Default: nothing."""
+
     def _sample_init(self, n: int) -> tuple[torch.Tensor, torch.Tensor]:
         """Initial ``q (n, nq)`` and ``qd (n, nv)`` of fresh episodes: the model's first keyframe (else qpos0)
         plus ``noise_q`` / ``noise_qd``; free-joint quaternions are renormalised."""
@@ -101,6 +127,15 @@ class TorchsimEnv(EnvBase):
             quat = q[:, adr:adr + 4]
             q = torch.cat((q[:, :adr], quat / quat.norm(dim=-1, keepdim=True), q[:, adr + 4:]), -1)
         return q, qd
+
+    def _sample_task(self, state: State) -> torch.Tensor:
+        """Task state ``(n, task_size)`` of fresh episodes starting in ``state`` (n envs); default: none."""
+        return state.q.new_zeros(state.q.shape[0], self.task_size)
+
+    def _next_task(self, state: State, task: torch.Tensor) -> torch.Tensor:
+        """Task state after a step ended in ``state`` (e.g. a hit target respawned); default: unchanged. The step's
+        reward saw the old one, the returned observation sees the new one."""
+        return task
 
     def _observation(self, state: State, ctrl: torch.Tensor) -> torch.Tensor:
         """Observation ``(B, observation_size)`` in ``state``, reached under controls ``ctrl (B, nu)`` (zero at the
@@ -168,9 +203,15 @@ class TorchsimEnv(EnvBase):
                           device=self.device)
 
     # ---------------------------------------------------------------------------------------------- public API
-    def set_state(self, q: torch.Tensor, qd: torch.Tensor) -> torch.Tensor:
-        """Put every env at ``q (B, nq)``, ``qd (B, nv)`` (MuJoCo layout), restart its episode; return the obs."""
+    def set_state(self, q: torch.Tensor, qd: torch.Tensor, task: torch.Tensor | None = None) -> torch.Tensor:
+        """Put every env at ``q (B, nq)``, ``qd (B, nv)`` (MuJoCo layout) and, if given, task state ``task
+        (B, task_size)`` (else freshly drawn), restart its episode; return the obs."""
         self.state = torchsim.init(self.sys, q, qd)
+        if task is None:
+            task = self._sample_task(self.state)
+        elif tuple(task.shape) != (*self.batch_size, self.task_size):
+            raise ValueError(f"task must have shape {(*self.batch_size, self.task_size)}, got {tuple(task.shape)}")
+        self.task = task.to(device=self.device, dtype=self.sys.dtype)
         self.step_count.zero_()
         return self._observation(self.state, self._zero_ctrl())
 
@@ -201,13 +242,15 @@ class TorchsimEnv(EnvBase):
 
     def _reset(self, tensordict: TensorDictBase | None, **kwargs) -> TensorDictBase:
         fresh = self._initial_state()
+        fresh_task = self._sample_task(fresh)
         mask = None if tensordict is None else tensordict.get("_reset", None)
         if mask is None:
-            self.state = fresh
+            self.state, self.task = fresh, fresh_task
             self.step_count.zero_()
         else:
             mask = mask.reshape(self.batch_size)
             self.state = select_state(mask, fresh, self.state)
+            self.task = torch.where(mask[:, None], fresh_task, self.task)
             self.step_count.copy_(torch.where(mask, 0, self.step_count))
         no = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         return self._output(self.state, self._zero_ctrl(), done=no, terminated=no.clone(), truncated=no.clone())
@@ -216,20 +259,28 @@ class TorchsimEnv(EnvBase):
         action = tensordict.get("action")
         self._check_action(action)
         ctrl = self._ctrl(action)
+        # A non-finite action (e.g. from a policy that diverged) must reach neither the physics nor the observation:
+        # the env runs with zero control and is flagged as diverged, so it ends and resets like one.
+        bad_action = ~torch.isfinite(ctrl).all(-1)
+        ctrl = torch.where(bad_action[:, None], 0.0, ctrl)
         before = self.state
         state = before
         for _ in range(self.frame_skip):
             state = torchsim.step(self.sys, state, ctrl)
+        state = state._replace(diverged=state.diverged | bad_action)
         reward = torch.where(state.diverged, 0.0, self._reward(before, state, ctrl))
         terminated = self._terminated(state) | state.diverged
+        task = self._next_task(state, self.task)
         self.step_count.add_(1)
         truncated = self.step_count >= self.episode_length
         done = terminated | truncated
         if self.__dict__.get("_torchrl_native_autoreset", False):
-            state = select_state(done, self._initial_state(), state)
+            fresh = self._initial_state()
+            state = select_state(done, fresh, state)
+            task = torch.where(done[:, None], self._sample_task(fresh), task)
             self.step_count.copy_(torch.where(done, 0, self.step_count))
             ctrl = torch.where(done[:, None], 0.0, ctrl)
-        self.state = state
+        self.state, self.task = state, task
         return self._output(state, ctrl, reward=reward[:, None].to(self.sys.dtype), done=done[:, None],
                             terminated=terminated[:, None], truncated=truncated[:, None])
 

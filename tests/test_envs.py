@@ -16,7 +16,7 @@ NAMES = envs.list()
 
 def test_list_and_make():
     assert NAMES == ["ant", "halfcheetah", "humanoid", "reacher", "hopper", "walker2d", "inverted_pendulum",
-                     "inverted_double_pendulum", "pusher"]
+                     "inverted_double_pendulum", "pusher", "ur5e_reach", "grasp", "fetch"]
     with pytest.raises(ValueError, match="unknown env 'antt'.*ant, halfcheetah"):
         envs.make("antt")
     env = envs.make("hopper", num_envs=3)
@@ -60,21 +60,22 @@ def _random_start(env, n, seed):
     return env._sample_init(n)
 
 
-@pytest.mark.parametrize("name", ["ant", "reacher"])
+@pytest.mark.parametrize("name", ["ant", "reacher", "ur5e_reach", "grasp", "fetch"])
 def test_batch_independence(name):
-    """Env i of a batch of 8 follows the trajectory it follows alone (same start, same actions; float64)."""
+    """Env i of a batch of 8 follows the trajectory it follows alone (same start, task and actions; float64)."""
     batch = envs.make(name, num_envs=8, dtype=torch.float64)
     q, qd = _random_start(batch, 8, seed=1)
+    task = batch._sample_task(torchsim.init(batch.sys, q, qd))
     actions = 2 * torch.rand(3, 8, batch.sys.nu, dtype=torch.float64) - 1
-    obs_batch = _run(batch, q, qd, actions)
+    obs_batch = _run(batch, q, qd, actions, task)
     i = 5
     alone = envs.make(name, num_envs=1, dtype=torch.float64)
-    obs_alone = _run(alone, q[i:i + 1], qd[i:i + 1], actions[:, i:i + 1])
+    obs_alone = _run(alone, q[i:i + 1], qd[i:i + 1], actions[:, i:i + 1], task[i:i + 1])
     torch.testing.assert_close(obs_batch[:, i:i + 1], obs_alone, atol=1e-6, rtol=0)
 
 
-def _run(env, q, qd, actions):
-    env.set_state(q, qd)
+def _run(env, q, qd, actions, task=None):
+    env.set_state(q, qd, task)
     out = []
     for a in actions:
         td = env.step(TensorDict(action=a, batch_size=env.batch_size))
@@ -253,8 +254,10 @@ def test_domain_randomisation_is_per_env():
         batch.set_physics(gravity_scale=2.0)
 
 
-def test_native_autoreset_is_one_graph_and_resets_done_rows():
-    env = envs.make("inverted_pendulum", num_envs=4, native_autoreset=True, episode_length=2, substeps=2)
+# fetch: targets that respawn (task state); 1 substep keeps its traced step small
+@pytest.mark.parametrize("name, substeps", [("inverted_pendulum", 2), ("fetch", 1)])
+def test_native_autoreset_is_one_graph_and_resets_done_rows(name, substeps):
+    env = envs.make(name, num_envs=4, native_autoreset=True, episode_length=2, substeps=substeps)
     td = env.reset()
     td["action"] = env.action_spec.rand()
     explanation = torch._dynamo.explain(env._step_and_maybe_reset)(td)
@@ -262,7 +265,7 @@ def test_native_autoreset_is_one_graph_and_resets_done_rows():
     env.reset()
     td = env.reset()
     for t in range(2):
-        td["action"] = torch.zeros(4, 1)
+        td["action"] = torch.zeros(4, env.sys.nu)
         out, td = env.step_and_maybe_reset(td)
     # Every env hit the 2-step limit: the "next" observation is invalid (NaN), the root one is a fresh episode.
     assert out["next", "truncated"].all() and torch.isnan(out["next", "observation"]).all()
