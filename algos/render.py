@@ -9,7 +9,6 @@ import sys
 
 os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported (by torchsim)
 
-import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
 
 import torchsim.envs  # noqa: E402
@@ -17,5 +16,6 @@ from torchsim.envs.video import render_frames, save_gif  # noqa: E402
 
 if __name__ == "__main__":
     env_name, qpos_path, out, fps = sys.argv[1:]
-    mj_model = mujoco.MjModel.from_xml_path(str(torchsim.envs.asset_path(torchsim.envs.ENVS[env_name].model_file)))
+    # the env's own MuJoCo model: for a URDF task it is the translated model with the env's floor and light
+    mj_model = torchsim.envs.make(env_name).mj_model
     save_gif(render_frames(mj_model, np.load(qpos_path)), out, fps=float(fps))
