@@ -18,13 +18,13 @@ import statistics
 import time
 
 import mujoco
-import mujoco.rollout
 import numpy as np
 import torch
 from tensordict import TensorDict
 
 import torchsim
 import torchsim.envs
+from _timing import mujoco_rollout_rate, mujoco_start_states
 
 
 def parse_args():
@@ -61,27 +61,11 @@ def time_torchsim(env, steps: int, repeats: int) -> float:
 
 def time_mujoco(env, batch: int, steps: int, repeats: int) -> float:
     m = env.mj_model
-    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    d = mujoco.MjData(m)
     q, qd = (x.double().numpy() for x in env._sample_init(batch))
-    init = np.empty((batch, mujoco.mj_stateSize(m, spec)))
-    for b in range(batch):
-        d.qpos[:], d.qvel[:] = q[b], qd[b]
-        mujoco.mj_getState(m, d, init[b], spec)
     lo, hi = m.actuator_ctrlrange[:, 0], m.actuator_ctrlrange[:, 1]
     ctrl = np.random.default_rng(0).uniform(lo, hi, (batch, steps, m.nu)).repeat(env.frame_skip, axis=1)
-    datas = [mujoco.MjData(m) for _ in range(os.cpu_count() or 1)]
-    nstep = steps * env.frame_skip
-    out = np.empty((batch, nstep, init.shape[1]))
-    mujoco.rollout.rollout(m, datas, init, ctrl, nstep=nstep, state=out)  # warm-up
-    rates = []
-    for _ in range(repeats):
-        calls, start = 0, time.perf_counter()
-        while calls == 0 or time.perf_counter() - start < 0.5:  # enough calls that call overhead does not dominate
-            mujoco.rollout.rollout(m, datas, init, ctrl, nstep=nstep, state=out)
-            calls += 1
-        rates.append(batch * steps * calls / (time.perf_counter() - start))
-    return statistics.median(rates)
+    threads = os.cpu_count() or 1
+    return mujoco_rollout_rate(m, mujoco_start_states(m, q, qd), ctrl, repeats, threads) / env.frame_skip
 
 
 def main():

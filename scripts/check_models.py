@@ -83,22 +83,29 @@ def actions(name: str, m: mujoco.MjModel) -> np.ndarray:
     return acts
 
 
-def mujoco_rollout(name: str, factor: int = 1, acts=None):
-    """MuJoCo trajectory at timestep / factor: per env step, (qpos, root xpos)."""
-    m = mujoco.MjModel.from_xml_path(path(name))
+def mujoco_trajectory(m: mujoco.MjModel, q0, qd0, acts, frames: int):
+    """MuJoCo trajectory of ``m`` as configured (timestep, integrator) from (q0, qd0), each row of ``acts`` held for
+    ``frames`` steps: per row, (qpos, root xpos)."""
     d = mujoco.MjData(m)
-    acts = actions(name, m) if acts is None else acts
-    d.qpos[:], d.qvel[:] = initial_state(name, m)
-    m.opt.timestep /= factor
+    d.qpos[:], d.qvel[:] = q0, qd0
     mujoco.mj_forward(m, d)
     qs, roots = [d.qpos.copy()], [d.xpos[1].copy()]
     for a in acts:
         d.ctrl[:] = a
-        for _ in range(MODELS[name]["frames"] * factor):
+        for _ in range(frames):
             mujoco.mj_step(m, d)
         qs.append(d.qpos.copy())
         roots.append(d.xpos[1].copy())
     return np.array(qs), np.array(roots)
+
+
+def mujoco_rollout(name: str, factor: int = 1, acts=None):
+    """MuJoCo trajectory at timestep / factor: per env step, (qpos, root xpos)."""
+    m = mujoco.MjModel.from_xml_path(path(name))
+    acts = actions(name, m) if acts is None else acts
+    start = initial_state(name, m)
+    m.opt.timestep /= factor
+    return mujoco_trajectory(m, *start, acts, MODELS[name]["frames"] * factor)
 
 
 def torchsim_rollout(name: str, substeps: int | None = None, method: str = "spring", acts=None, companions=False):

@@ -1,0 +1,49 @@
+"""Throughput timing shared by the benchmark scripts: the median rate of a repeated call, and MuJoCo C's batched
+``mujoco.rollout`` as the baseline."""
+
+import statistics
+import time
+from collections.abc import Callable
+
+import mujoco
+import mujoco.rollout
+import numpy as np
+
+
+def median_rate(run: Callable[[], None], units: float, repeats: int, min_seconds: float = 0.5) -> float:
+    """Median over ``repeats`` of ``units`` x calls / seconds, each repeat calling ``run`` until ``min_seconds`` have
+    passed (enough calls that the timer's and the call's fixed overheads do not dominate)."""
+    rates = []
+    for _ in range(repeats):
+        calls, start = 0, time.perf_counter()
+        while calls == 0 or time.perf_counter() - start < min_seconds:
+            run()
+            calls += 1
+        rates.append(units * calls / (time.perf_counter() - start))
+    return statistics.median(rates)
+
+
+def mujoco_start_states(m: mujoco.MjModel, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
+    """(batch, nstate) full-physics states of ``m`` at generalized positions ``q`` and velocities ``qd`` (batch, .)."""
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    d = mujoco.MjData(m)
+    states = np.empty((len(q), mujoco.mj_stateSize(m, spec)))
+    for b in range(len(q)):
+        d.qpos[:], d.qvel[:] = q[b], qd[b]
+        mujoco.mj_getState(m, d, states[b], spec)
+    return states
+
+
+def mujoco_rollout_rate(m: mujoco.MjModel, start: np.ndarray, ctrl: np.ndarray, repeats: int,
+                        threads: int = 1) -> float:
+    """MuJoCo steps/s (batch x nstep / s) of ``mujoco.rollout`` on ``threads`` threads from ``start`` (batch,
+    nstate) under ``ctrl`` (batch, nstep, nu), after one untimed warm-up rollout."""
+    datas = [mujoco.MjData(m) for _ in range(threads)]
+    batch, nstep = ctrl.shape[:2]
+    out = np.empty((batch, nstep, start.shape[1]))
+
+    def run():
+        mujoco.rollout.rollout(m, datas, start, ctrl, nstep=nstep, state=out)
+
+    run()
+    return median_rate(run, batch * nstep, repeats)
