@@ -256,10 +256,11 @@ def mujoco_rate(model: Model, factor: int, integrator: str, batch: int, repeats:
 
 
 def row(name: str, model: Model, engine: str, method: str, dtype: str, substeps: int, timestep: float,
-        steps_per_s: float, errs: dict, **extra) -> dict:
+        steps_per_s: float, errs: dict, args, **extra) -> dict:
     """One CSV row. ``substeps``: steps per model timestep (torchsim's substeps; MuJoCo's timestep factor)."""
     return dict(model=name, engine=engine, method=method, dtype=dtype, substeps=substeps, timestep_s=timestep,
-                h_s=timestep / substeps, frame_skip=model.frame_skip, steps_per_s=steps_per_s,
+                h_s=timestep / substeps, frame_skip=model.frame_skip, batch=args.batch, threads=1,
+                device=args.device if engine == "torchsim" else "cpu", steps_per_s=steps_per_s,
                 env_steps_per_s=steps_per_s / model.frame_skip, **errs, **extra)
 
 
@@ -271,7 +272,7 @@ def mujoco_points(name: str, model: Model, ref: list, args) -> list[dict]:
         t0 = time.perf_counter()
         r = row(name, model, "mujoco", integrator, "float64", factor, mujoco_model(model).opt.timestep,
                 mujoco_rate(model, factor, integrator, args.batch, args.repeats),
-                errors(model, mujoco_runs(model, factor, integrator), ref),
+                errors(model, mujoco_runs(model, factor, integrator), ref), args,
                 default=integrator == "Euler" and factor == 1)
         rows.append(r)
         log(f"{describe(r)} ({time.perf_counter() - t0:.0f} s)")
@@ -301,7 +302,7 @@ def torchsim_points(name: str, model: Model, ref: list, method: str, dtype: str,
         sys_ = base.replace(substeps=substeps)
         runs, gap, diverged = torchsim_runs(sys_, model, m)
         r = row(name, model, "torchsim", method, dtype, substeps, base.timestep,
-                torchsim_rate(sys_, model, m, args.batch, args.repeats), errors(model, runs, ref),
+                torchsim_rate(sys_, model, m, args.batch, args.repeats), errors(model, runs, ref), args,
                 anchor_gap_m=gap, diverged=diverged, compiled=not args.eager, compile_s=compile_s,
                 default=method == "spring" and dtype == "float32" and substeps == default)
         rows.append(r)
@@ -318,15 +319,12 @@ def describe(r: dict) -> str:
             + ("  DIVERGED" if r.get("diverged") else "") + ("  [default]" if r["default"] else ""))
 
 
-def pareto(rows: list[dict], metric: str) -> set[int]:
-    """Indices of the rows no other row beats on both ``metric`` (lower) and env-steps/s (higher)."""
+def pareto(rows: list[dict], metric: str, tie: float = 0.02) -> set[int]:
+    """Indices of the rows no other row beats on env-steps/s (higher) at an equal or lower ``metric``; errors within
+    ``tie`` (relative) count as equal (e.g. RK4 at every timestep, all at the reference's own error)."""
     ok = [i for i, r in enumerate(rows) if np.isfinite(r[metric]) and not r.get("diverged")]
-    front, best = set(), -np.inf
-    for i in sorted(ok, key=lambda i: (rows[i][metric], -rows[i]["env_steps_per_s"])):
-        if rows[i]["env_steps_per_s"] > best:
-            front.add(i)
-            best = rows[i]["env_steps_per_s"]
-    return front
+    return {i for i in ok if not any(rows[j][metric] <= rows[i][metric] * (1 + tie)
+                                     and rows[j]["env_steps_per_s"] > rows[i]["env_steps_per_s"] for j in ok)}
 
 
 def _parse(value: str):
@@ -362,6 +360,17 @@ def write_csv(rows: list[dict], path: Path) -> None:
         writer.writerows({k: f"{v:.6g}" if isinstance(v, float) else v for k, v in r.items()} for r in rows)
 
 
+def chart(name: str, rows: list[dict], args) -> None:
+    """Mark the model's Pareto fronts in ``rows`` (``pareto_<metric>`` columns) and write its chart."""
+    model, model_rows = MODELS[name], [r for r in rows if r["model"] == name]
+    for metric in ERRORS[model.contact_free]:
+        front = pareto(model_rows, metric)
+        for i, r in enumerate(model_rows):
+            r[f"pareto_{metric}"] = i in front
+    plot_model(name, model_rows, ERRORS[model.contact_free], model.frame_skip, model_rows[0]["batch"],
+               args.out / f"speed_accuracy_{name}.png")
+
+
 def parse_args():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", nargs="+", default=None, choices=list(MODELS), help="default: all (--quick: "
@@ -380,6 +389,8 @@ def parse_args():
     p.add_argument("--merge", action="store_true",
                    help="keep the points of the CSV in --out that this run does not measure (charts show both)")
     p.add_argument("--no-mujoco", action="store_true", help="measure no MuJoCo points (with --merge: keep the CSV's)")
+    p.add_argument("--replot", action="store_true",
+                   help="measure nothing: recompute the Pareto fronts and charts of the CSV in --out")
     args = p.parse_args()
     args.models = args.models or (["pendulum", "ant"] if args.quick else list(MODELS))
     if args.quick:
@@ -393,9 +404,15 @@ def main():
     torch.set_num_threads(1)  # one thread for both engines; 2 threads stall on the shared 2-core VM
     torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
     args.out.mkdir(parents=True, exist_ok=True)
+    csv_path = args.out / "speed_accuracy.csv"
+    if args.replot:
+        rows = read_csv(csv_path)
+        for name in dict.fromkeys(r["model"] for r in rows):
+            chart(name, rows, args)
+        write_csv(rows, csv_path)
+        return
     log(f"torch {torch.__version__}, mujoco {mujoco.__version__}, {args.device}, {os.cpu_count()} cores, 1 thread, "
         f"batch {args.batch}, {'eager' if args.eager else 'compiled substeps'}")
-    csv_path = args.out / "speed_accuracy.csv"
     start, rows = time.perf_counter(), read_csv(csv_path) if args.merge and csv_path.exists() else []
     for name in args.models:
         torch._dynamo.reset()  # each model compiles its own substep graphs
@@ -409,13 +426,7 @@ def main():
         for method, dtype in settings:
             measured += torchsim_points(name, model, ref, method, dtype, args)
         rows = merge(rows, measured)
-        model_rows = [r for r in rows if r["model"] == name]
-        for metric in ERRORS[model.contact_free]:
-            front = pareto(model_rows, metric)
-            for i, r in enumerate(model_rows):
-                r[f"pareto_{metric}"] = i in front
-        plot_model(name, model_rows, ERRORS[model.contact_free], model.frame_skip, args.batch,
-                   args.out / f"speed_accuracy_{name}.png")
+        chart(name, rows, args)
         write_csv(rows, csv_path)  # after every model, so a stopped run keeps its rows
         log(f"{name} done at {(time.perf_counter() - start) / 60:.1f} min")
     minutes = (time.perf_counter() - start) / 60
