@@ -36,8 +36,8 @@ class Fetch(TorchsimEnv):
     U(-0.1, 0.1), rates 0.1 N(0, 1), the torso at rest; a fresh target.
 
     Versus MuJoCo (float64, full-range random actions held per env step, 1.25 ms substeps): torso within 1.8 cm
-    after 0.25 s (2.4 cm at 2.5 ms; MuJoCo at 5 ms vs 1.25 ms: 1.1 cm) and, at 2.5 ms, 14 cm after 1 s (MuJoCo's own: 9 cm; travel 0.53 m vs
-    MuJoCo's 0.53 m).
+    after 0.25 s (2.4 cm at 2.5 ms; MuJoCo at 5 ms vs 1.25 ms: 1.1 cm) and, at 2.5 ms, 14 cm after 1 s (MuJoCo's
+    own: 9 cm; travel 0.53 m vs MuJoCo's 0.53 m).
     """
 
     model_file = "fetch.xml"

@@ -48,7 +48,7 @@ import torchsim
 from torchsim.envs import ENVS
 from torchsim.io_urdf import urdf_to_mjcf
 from torch._dynamo.utils import counters
-from torchsim.kinematics import joint_frames, with_world
+from torchsim.kinematics import anchor_gap
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(REPO / "scripts"), str(REPO / "tests")]
@@ -169,12 +169,6 @@ def mujoco_runs(model: Model, factor: int = 1, integrator: str | None = None) ->
             for acts in model.controls(m0)]
 
 
-def anchor_gap(sys: torchsim.System, state: torchsim.State) -> float:
-    """Largest joint-anchor separation [m] over the batch (the constrained part of the child anchor's offset)."""
-    frames = joint_frames(sys, with_world(state.x_pos, state.x_quat, state.xd_vel, state.xd_ang))
-    return float(frames.lin_err.norm(dim=-1).max())
-
-
 def torchsim_runs(sys: torchsim.System, model: Model, m: mujoco.MjModel):
     """All scenarios side by side in one batch of ACCURACY_BATCH envs: per scenario (q, root xpos) per env step, the
     largest anchor gap seen at any env step, and whether any env diverged."""
@@ -202,7 +196,7 @@ def torchsim_runs(sys: torchsim.System, model: Model, m: mujoco.MjModel):
     qs, roots = (x.transpose(0, 1).double().cpu().numpy() for x in (qs, roots))
     runs = [(qs[e, :len(c) + 1], roots[e, :len(c) + 1]) for e, c in enumerate(controls)]
     diverged = bool(state.diverged.any()) or not bool(torch.isfinite(state.q).all())
-    return runs, anchor_gap(sys, history), diverged
+    return runs, float(anchor_gap(sys, history).max()), diverged
 
 
 def errors(model: Model, runs: list, ref: list) -> dict:

@@ -44,7 +44,7 @@ import torchsim
 from torchsim import math as tmath
 from torchsim import rigid
 from torchsim.envs import ENVS, make
-from torchsim.kinematics import dof_values, joint_frames, with_world
+from torchsim.kinematics import anchor_gap, dof_values, joint_frames, with_world
 from torchsim.pipeline import contain_divergence
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
@@ -140,12 +140,6 @@ def mechanical_energy(sys: torchsim.System, state: torchsim.State) -> torch.Tens
     gravity = -(sys.body_mass * (state.x_pos * sys.gravity).sum(-1)).sum(-1)
     stretch = state.q[:, sys.dof_qpos] - sys.dof_springref
     return kinetic + gravity + 0.5 * (sys.dof_stiffness * stretch ** 2).sum(-1)
-
-
-def anchor_gap(sys: torchsim.System, state: torchsim.State) -> torch.Tensor:
-    """Largest joint anchor separation [m] per env ``(B,)`` (the constrained part, as the accuracy tests read it)."""
-    frames = joint_frames(sys, with_world(state.x_pos, state.x_quat, state.xd_vel, state.xd_ang))
-    return frames.lin_err.norm(dim=-1).amax(-1)
 
 
 def initial_state(sys: torchsim.System, omega: torch.Tensor, gen: torch.Generator) -> torchsim.State:

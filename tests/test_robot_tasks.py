@@ -273,7 +273,8 @@ def test_ur5e_follows_mujoco():
 
 def test_grasp_lifts_the_ball_as_mujoco():
     """Scripted: lower the palm onto the ball (0.6 s), curl every finger fully (0.6 s), lift the palm to 8 m
-    (0.8 s). The ball comes up as in MuJoCo (measured 4.25 m, MuJoCo 4.63 m); looser grips slip out in torchsim (``Grasp``)."""
+    (0.8 s). The ball comes up as in MuJoCo (measured 4.25 m, MuJoCo 4.63 m); looser grips slip out in torchsim
+    (``Grasp``)."""
     env = envs.make("grasp", num_envs=1, dtype=F64)
     m, data = env.mj_model, mujoco.MjData(env.mj_model)
     data.qpos[:] = m.key_qpos[0]

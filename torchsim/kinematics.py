@@ -172,6 +172,13 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     )
 
 
+def anchor_gap(sys: System, state) -> torch.Tensor:
+    """Largest joint-anchor separation [m] per env ``(B,)`` of a ``torchsim.State``: the constrained part of each
+    child anchor's offset from its parent anchor, the joint error that accuracy and stability checks bound."""
+    bodies = with_world(state.x_pos, state.x_quat, state.xd_vel, state.xd_ang)
+    return joint_frames(sys, bodies, coordinates=False).lin_err.norm(dim=-1).amax(-1)
+
+
 def dof_values(sys: System, per_joint: torch.Tensor) -> torch.Tensor:
     """Gather ``(B, J, 6, ...)`` joint-slot values into ``(B, D, ...)`` dof values."""
     flat = per_joint.reshape(per_joint.shape[0], -1, *per_joint.shape[3:])
