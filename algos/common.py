@@ -98,11 +98,17 @@ class Evaluation(NamedTuple):
 
 
 @torch.no_grad()
-def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False) -> Evaluation:
+def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False, seed: int | None = None) -> Evaluation:
     """Deterministic evaluation of each env's first episode (at most ``max_steps`` steps); with ``record``, env 0's
     ``q`` trajectory for a video. Finished envs keep stepping, masked out, so the batch stays fixed; the loop stops
-    once every env has finished."""
-    td = env.reset()
+    once every env has finished. With ``seed``, the episodes start from the same states at every call (drawn from
+    a forked RNG, leaving the caller's stream alone), so successive evaluations compare policies, not start draws."""
+    if seed is None:
+        td = env.reset()
+    else:
+        with torch.random.fork_rng(devices=[env.device] if env.device.type == "cuda" else []):
+            torch.manual_seed(seed)
+            td = env.reset()
     alive = torch.ones(env.batch_size, dtype=torch.bool, device=env.device)
     ret = torch.zeros(env.batch_size, device=env.device)
     length = torch.zeros(env.batch_size, dtype=torch.long, device=env.device)
@@ -165,7 +171,8 @@ class Run:
         self.eval_env, self.train_env = eval_env, train_env
         self.logger = get_logger(cfg.logger, logger_name=str(self.out_dir), experiment_name="logs")
         self.env_steps, self.iteration, self.elapsed = 0, 0, 0.0
-        self.history = {"train": [], "eval": [], "eval_success": []}  # rows (env_steps, wall_s, value)
+        # rows (env_steps, wall_s, value); step_reward: the mean reward per env step of each iteration's batch
+        self.history = {"train": [], "eval": [], "eval_success": [], "step_reward": []}
         self.recent = collections.deque(maxlen=cfg.recent_episodes)
         self.next_eval = 0
         if cfg.resume:
@@ -225,6 +232,7 @@ class Run:
         if self.recent:
             metrics["train/return"] = recent
             self.history["train"].append((self.env_steps, self.wall, recent))
+        self.history["step_reward"].append((self.env_steps, self.wall, self.step_reward))
         self.log(metrics)
         line = (f"[{self.cfg.algo.name} {self.cfg.env.name}] it {self.iteration:4d}  steps {self.env_steps:>9,d}  "
                 f"{sps:7.0f} steps/s  return {recent:8.2f}  reward/step {self.step_reward:7.3f}  "
@@ -244,7 +252,7 @@ class Run:
     def evaluate(self) -> str:
         """Evaluate, record and log; return the progress-line text (return, and success for goal tasks)."""
         self.sync_eval_norm()
-        result = evaluate(self.eval_env, self.actor, self.cfg.eval.max_steps)
+        result = evaluate(self.eval_env, self.actor, self.cfg.eval.max_steps, seed=self.cfg.seed + 1)
         mean = result.ret.mean().item()
         self.history["eval"].append((self.env_steps, self.wall, mean))
         metrics = {"eval/return": mean, "eval/episode_length": result.length.float().mean().item()}
@@ -284,7 +292,7 @@ class Run:
         c = ckpt["counters"]
         self.env_steps, self.iteration, self.elapsed, self.next_eval = (c["env_steps"], c["iteration"], c["elapsed"],
                                                                       c["next_eval"])
-        self.history = ckpt["history"]
+        self.history.update(ckpt["history"])
         torch.set_rng_state(ckpt["rng"])
         print(f"resumed from {path} at env step {self.env_steps}")
 
@@ -307,30 +315,32 @@ class Run:
 
 
 def plot_curves(history: dict, path, title: str) -> None:
-    """Eval and train return against env steps and against wall-clock minutes, side by side (PNG); for goal-reaching
-    tasks a third panel shows the evaluation success rate against env steps."""
+    """Eval and train return against env steps and against wall-clock minutes, and the training batches' mean reward
+    per env step (it moves before whole-episode returns do in short runs); for goal-reaching tasks a fourth panel
+    shows the evaluation success rate against env steps (PNG)."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
     goal_task = bool(history.get("eval_success"))
-    fig, axes = plt.subplots(1, 3 if goal_task else 2, figsize=(15 if goal_task else 10, 3.8))
+    fig, axes = plt.subplots(1, 4 if goal_task else 3, figsize=(20 if goal_task else 15, 3.8))
     for key, style in (("eval", "o-"), ("train", "-")):
         rows = np.array(history[key]).reshape(-1, 3)
         axes[0].plot(rows[:, 0], rows[:, 2], style, label=f"{key} return")
         axes[1].plot(rows[:, 1] / 60, rows[:, 2], style, label=f"{key} return")
-    axes[0].set_xlabel("env steps")
-    axes[1].set_xlabel("wall-clock (min)")
     for ax in axes[:2]:
         ax.set_ylabel("return")
+    rows = np.array(history.get("step_reward", [])).reshape(-1, 3)
+    axes[2].plot(rows[:, 0], rows[:, 2], "-", color="C2", label="train reward per env step")
+    axes[2].set_ylabel("reward per step")
     if goal_task:
         rows = np.array(history["eval_success"])
-        axes[2].plot(rows[:, 0], rows[:, 2], "o-", label="eval success rate")
-        axes[2].set_xlabel("env steps")
-        axes[2].set_ylabel("success rate")
-        axes[2].set_ylim(-0.02, 1.02)
+        axes[3].plot(rows[:, 0], rows[:, 2], "o-", label="eval success rate")
+        axes[3].set_ylabel("success rate")
+        axes[3].set_ylim(-0.02, 1.02)
     for ax in axes:
+        ax.set_xlabel("wall-clock (min)" if ax is axes[1] else "env steps")
         ax.grid(alpha=0.3)
         ax.legend()
     fig.suptitle(title)

@@ -1,6 +1,7 @@
 """Training recipes: PPO and SAC learn inverted_pendulum (random play falls within ~10 steps), checkpoints round-trip,
 every recipe runs through Hydra overrides, and a diverging run stops naming its step."""
 
+import numpy as np
 import pytest
 import torch
 from tensordict import TensorDict
@@ -65,6 +66,10 @@ def test_checkpoint_round_trip_and_resume(tmp_path):
     assert torch.equal(ret_a, ret_b)
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         assert torch.equal(trained.actor(obs.clone())["action"], actor(obs.clone())["action"])
+    rng = torch.get_rng_state()  # seeded evaluations start from the same states, off the caller's RNG stream
+    runs = [evaluate(env, actor, 5, record=True, seed=seed).qpos for seed in (3, 3, 4)]
+    assert np.array_equal(runs[0], runs[1]) and not np.array_equal(runs[0], runs[2])
+    assert torch.equal(torch.get_rng_state(), rng)
     resumed = run(tiny("ppo", f"resume={tmp_path / 'checkpoints' / 'last.pt'}", "budget.env_steps=48"), tmp_path / "r")
     assert resumed.env_steps == 48 and resumed.iteration == 3
 
