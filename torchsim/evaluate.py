@@ -1,8 +1,9 @@
 """Evaluate (and render) a trained policy: ``python -m torchsim.evaluate checkpoint=<run>/checkpoints/last.pt
-[episodes=16] [max_steps=N] [video=true] [device=cpu]``.
+[episodes=16] [max_steps=N] [video=true] [device=cpu] [seed=N]``.
 
 Prints the deterministic policy's mean return and episode length over ``episodes`` envs (and, for goal-reaching
-tasks, the success rate and median final goal distance); ``video=true`` writes
+tasks, the success rate and median final goal distance); ``seed`` fixes the episodes' start states (training's
+evaluations use the run's ``seed + 1``); ``video=true`` writes
 ``eval.gif`` of env 0 next to the checkpoint's run dir.
 """
 
@@ -14,7 +15,7 @@ from omegaconf import OmegaConf
 
 from torchsim.algos.common import evaluate, load_policy, make_env, render_gif
 
-DEFAULTS = {"checkpoint": "???", "episodes": 16, "max_steps": None, "video": False, "device": "cpu"}
+DEFAULTS = {"checkpoint": "???", "episodes": 16, "max_steps": None, "video": False, "device": "cpu", "seed": None}
 
 
 def main(argv: list[str]) -> dict:
@@ -25,7 +26,7 @@ def main(argv: list[str]) -> dict:
     cfg = OmegaConf.create(ckpt["cfg"])
     env = make_env(cfg, args.episodes, args.device)
     actor = load_policy(ckpt, env, args.device)
-    ev = evaluate(env, actor, args.max_steps or cfg.eval.max_steps, record=args.video)
+    ev = evaluate(env, actor, args.max_steps or cfg.eval.max_steps, record=args.video, seed=args.seed)
     result = {"env": cfg.env.name, "algo": cfg.algo.name, "env_steps_trained": ckpt["counters"]["env_steps"],
               "return_mean": ev.ret.mean().item(), "return_std": ev.ret.std().item(),
               "episode_length_mean": ev.length.float().mean().item()}
