@@ -252,7 +252,7 @@ class Run:
     def evaluate(self) -> str:
         """Evaluate, record and log; return the progress-line text (return, and success for goal tasks)."""
         self.sync_eval_norm()
-        result = evaluate(self.eval_env, self.actor, self.cfg.eval.max_steps, seed=self.cfg.seed + 1)
+        result = evaluate(self.eval_env, self.actor, self.cfg.eval.max_steps, seed=self.cfg.eval.seed)
         mean = result.ret.mean().item()
         self.history["eval"].append((self.env_steps, self.wall, mean))
         metrics = {"eval/return": mean, "eval/episode_length": result.length.float().mean().item()}

@@ -2,8 +2,8 @@
 [episodes=16] [max_steps=N] [video=true] [device=cpu] [seed=N]``.
 
 Prints the deterministic policy's mean return and episode length over ``episodes`` envs (and, for goal-reaching
-tasks, the success rate and median final goal distance); ``seed`` fixes the episodes' start states (training's
-evaluations use the run's ``seed + 1``); ``video=true`` writes
+tasks, the success rate and median final goal distance); ``seed`` fixes the episodes' start states (a run's
+own evaluations use its ``eval.seed``); ``video=true`` writes
 ``eval.gif`` of env 0 next to the checkpoint's run dir.
 """
 
