@@ -47,10 +47,12 @@ class RunningNorm(VecNormV2):
         return super()._norm(data, loc, var.apply(lambda v, m: torch.maximum(v, m * m), loc), count)
 
 
-def make_env(cfg: DictConfig, num_envs: int, device) -> TransformedEnv:
+def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False) -> TransformedEnv:
     """The task batched over ``num_envs`` with running observation normalisation (``RunningNorm``, statistics over
-    the batch too), episode return (``episode_reward``) and length (``step_count``)."""
-    base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length)
+    the batch too), episode return (``episode_reward``) and length (``step_count``); a ``train`` env staggers its
+    first episodes if ``cfg.stagger_episodes``."""
+    base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length,
+                              stagger_episodes=train and cfg.stagger_episodes)
     norm = RunningNorm(in_keys=["observation"], decay=cfg.obs_norm_decay, eps=1e-4, reduce_batch_dims=True)
     return TransformedEnv(base, Compose(norm, RewardSum(), StepCounter()))
 

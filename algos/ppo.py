@@ -15,7 +15,7 @@ from torchsim.algos.common import Run, make_actor, make_env, make_value, maybe_c
 
 def train(cfg, out_dir) -> Run:
     a, device = cfg.algo, torch.device(cfg.device)
-    env = make_env(cfg, a.num_envs, device)
+    env = make_env(cfg, a.num_envs, device, train=True)
     actor = make_actor(env, a.policy_net, device)
     critic = make_value(env, a.value_net, device, with_action=False)
     loss_module = ClipPPOLoss(actor, critic, clip_epsilon=a.clip_epsilon, entropy_coeff=a.entropy_coeff,

@@ -15,7 +15,7 @@ from torchsim.algos.common import Run, make_actor, make_env, make_value, maybe_c
 
 def train(cfg, out_dir) -> Run:
     a, device = cfg.algo, torch.device(cfg.device)
-    env = make_env(cfg, a.num_envs, device)
+    env = make_env(cfg, a.num_envs, device, train=True)
     actor = make_actor(env, a.policy_net, device)
     qvalue = make_value(env, a.q_net, device, with_action=True)
     loss_module = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", alpha_init=a.alpha_init)

@@ -40,7 +40,7 @@ def list() -> builtins.list[str]:  # noqa: A001 - the public name asked for: tor
 
 def make(name: str, num_envs: int = 1, device="cpu", **kwargs) -> TorchsimEnv:
     """Build env ``name`` with ``batch_size=(num_envs,)`` on ``device``; ``kwargs`` go to the env class
-    (``dtype``, ``episode_length``, ``native_autoreset``, ``method``, ``substeps``)."""
+    (``dtype``, ``episode_length``, ``native_autoreset``, ``method``, ``substeps``, ``stagger_episodes``)."""
     if name not in ENVS:
         raise ValueError(f"unknown env {name!r}; available: {', '.join(ENVS)}")
     return ENVS[name](num_envs, device=device, **kwargs)

@@ -48,6 +48,10 @@ class TorchsimEnv(EnvBase):
             ``step_and_maybe_reset`` free of host syncs so it compiles as one graph.
         method, substeps: physics solution method and substeps per model timestep (``torchsim.load_mjcf``;
             default: the task's ``method`` and ``substeps``).
+        stagger_episodes: a full reset starts each env's step counter at a uniform draw in
+            ``[0, episode_length)``, so first episodes are truncated at different times. Tasks that never end early
+            otherwise run every env in the same phase of its episode, and a training batch of a few steps then
+            holds one phase only (for training envs; evaluations want whole episodes).
     """
 
     #: The model asset in ``envs/assets``: MJCF (``.xml``) or URDF (``.urdf``, translated by ``urdf_to_mjcf``).
@@ -75,7 +79,8 @@ class TorchsimEnv(EnvBase):
     task_size: int = 0
 
     def __init__(self, num_envs: int = 1, *, device="cpu", dtype=torch.float32, episode_length: int = 1000,
-                 native_autoreset: bool = False, method: str | None = None, substeps: int | None = None):
+                 native_autoreset: bool = False, method: str | None = None, substeps: int | None = None,
+                 stagger_episodes: bool = False):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs}")
         super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
@@ -85,6 +90,7 @@ class TorchsimEnv(EnvBase):
                                            xpbd_iterations=self.xpbd_iterations, dtype=dtype, device=self.device)
         self.sys = self.base_sys
         self.episode_length = int(episode_length)
+        self.stagger_episodes = bool(stagger_episodes)
         self.dt = self.frame_skip * self.sys.timestep
         self._free_quat_qpos = [int(a) + 3 for a in self.sys.free_qpos]  # Python ints: no sync at step time
         if native_autoreset:
@@ -246,7 +252,10 @@ class TorchsimEnv(EnvBase):
         mask = None if tensordict is None else tensordict.get("_reset", None)
         if mask is None:
             self.state, self.task = fresh, fresh_task
-            self.step_count.zero_()
+            if self.stagger_episodes:
+                self.step_count.copy_(torch.randint_like(self.step_count, self.episode_length))
+            else:
+                self.step_count.zero_()
         else:
             mask = mask.reshape(self.batch_size)
             self.state = select_state(mask, fresh, self.state)

@@ -69,8 +69,11 @@ class UR5eReach(TorchsimEnv):
     (-pi, pi]: absolute targets would snap across that seam. Servo stiffness is Menagerie's; its damping (400/100)
     is halved, since with the force clipped to the effort the damping caps the speed (Menagerie's: 0.38 rad/s).
 
-    Observation (27): cos and sin of the 6 joint angles, the 6 joint rates, the tool position, the target, target
-    minus tool (world frame, metres). Reward: ``-|tool - target| - 0.01 |a|^2 + 1[|tool - target| < 0.02]``
+    Observation (30): cos and sin of the 6 joint angles, the 6 joint rates, the tool position, the target, target
+    minus tool (world frame, metres), and target minus tool again in units of 5 cm, clipped to [-1, 1]. That last
+    feature is what lets PPO close the final centimetres: after running normalisation the metre-scale error's 2 cm
+    is ~0.05 of its spread, the clipped one's 2 cm is ~0.4 (without it the reach stalled at ~10 cm; with it 36% of
+    evaluation episodes ended within 2 cm after 0.5M steps, against 0%: docs/training.md). Reward: ``-|tool - target| - 0.01 |a|^2 + 1[|tool - target| < 0.02]``
     (the design in ``shared/reference/ur5e.md`` section 4; Brax v1 rewarded progress plus hits). Success: the
     tool ends the episode within 2 cm of the target (``goal_distance``). No termination. Reset: ``HOME`` +
     U(-0.1, 0.1) rad, rates 0.1 N(0, 1); the target stays fixed for the episode (``task``), drawn from a pool of
@@ -92,9 +95,10 @@ class UR5eReach(TorchsimEnv):
     urdf_armature = 0.1
     frame_skip = 20
     substeps = 2
-    observation_size = 27
+    observation_size = 30
     task_size = 3
     success_distance = 0.02
+    fine_error_scale = 0.05  # [m]
     named_bodies = LINKS + ("tool0",)
     target_pool_size = 1 << 14  # candidate joint configurations; 47% pass the workspace filter
     min_target_height = 0.05  # [m]
@@ -155,7 +159,9 @@ class UR5eReach(TorchsimEnv):
 
     def _observation(self, state, ctrl):
         tool = self._tool(state)
-        return torch.cat((torch.cos(state.q), torch.sin(state.q), state.qd, tool, self.task, self.task - tool), -1)
+        error = self.task - tool
+        fine_error = (error / self.fine_error_scale).clamp(-1.0, 1.0)
+        return torch.cat((torch.cos(state.q), torch.sin(state.q), state.qd, tool, self.task, error, fine_error), -1)
 
     def _goal_distance(self, state):
         return (self.task - self._tool(state)).norm(dim=-1)

@@ -55,6 +55,20 @@ def test_env_api(name):
     assert len(batches) == 2 and batches[0].batch_size == (15, 2)
 
 
+def test_staggered_episodes():
+    """``stagger_episodes``: after a full reset each env's first episode is truncated at its own step in
+    ``[1, episode_length]``, spread over that range; every later episode has the full length."""
+    torch.manual_seed(0)
+    env = envs.make("reacher", num_envs=64, episode_length=10, stagger_episodes=True)
+    truncated = env.rollout(25, break_when_any_done=False)["next", "truncated"][..., 0]  # (64, 25)
+    first = truncated.int().argmax(-1) + 1  # step of the first truncation
+    assert first.min() >= 1 and first.max() <= 10 and len(first.unique()) >= 8
+    for env_first, row in zip(first.tolist(), truncated):
+        assert row.nonzero().flatten().tolist() == [t - 1 for t in range(env_first, 26, 10)]
+    plain = envs.make("reacher", num_envs=4, episode_length=10)
+    assert plain.rollout(10, break_when_any_done=False)["next", "truncated"][:, -1].all()
+
+
 def _random_start(env, n, seed):
     torch.manual_seed(seed)
     return env._sample_init(n)

@@ -117,6 +117,10 @@ def test_ur5e_reward_and_success():
         assert env._goal_distance(state).item() == pytest.approx(offset, abs=1e-12)
     out = _step(env, torch.zeros(1, 6))
     assert out["goal_distance"].item() == pytest.approx(env._goal_distance(env.state).item())
+    # The observation's last 6: the error in metres, then in units of 5 cm clipped to [-1, 1].
+    state = _at(env, env.init_q, task=tool + torch.tensor([[0.01, -0.2, 0.0]], dtype=F64))
+    error = env._observation(state, env._zero_ctrl())[0, -6:]
+    np.testing.assert_allclose(error, [0.01, -0.2, 0.0, 0.2, -1.0, 0.0], atol=1e-12)
 
 
 # ----------------------------------------------------------------------------------------------------------- Fetch
