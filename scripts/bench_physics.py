@@ -51,12 +51,13 @@ def parse_args(argv=None):
     p.add_argument("--no-mujoco", action="store_true", help="skip the MuJoCo reference timings")
     p.add_argument("--no-accuracy", action="store_true", help="skip the float64 accuracy check against MuJoCo")
     p.add_argument("--compile-scope", choices=["step", "substep"], default="substep",
-                   help="'substep' (default): compile only the method's substep function (torchsim.pipeline.SUBSTEP, "
-                        "patched at run time in this process only; torchsim.step's loop calls it sys.substeps times); "
+                   help="'substep' (default): torchsim.compile_substeps(dynamic=False): the method's substep function, "
+                        "which torchsim.step's loop calls sys.substeps times, and the step's read-back; "
                         "'step': torch.compile(torchsim.step) as a whole (all substeps unrolled into one graph; on a "
                         "2-core CPU Inductor had not finished one xpbd variant after 25 min)")
-    p.add_argument("--no-vectorize", action="store_true",
-                   help="Inductor CPU codegen without SIMD (cpp.simdlen=1): shorter compiles, possibly slower code")
+    p.add_argument("--vectorize", action="store_true",
+                   help="Inductor CPU codegen with SIMD (its default; torchsim.compile_substeps compiles without, "
+                        "cpp.simdlen=1, because SIMD over 3-4 vector components is slower here)")
     p.add_argument("--compile-style", choices=["closure", "arg"], default="closure",
                    help="'closure': compile lambda s, c: step(sys, s, c); 'arg': compile step itself, sys as argument")
     p.add_argument("--keep-inductor-cache", action="store_true",
@@ -126,7 +127,7 @@ def machine_info(device: torch.device, dtype: torch.dtype) -> dict:
         "cpu_count": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "compile": f"scope={ARGS.compile_scope}" + (f" style={ARGS.compile_style}" if ARGS.compile_scope == "step" else "")
-                   + (" no-vectorize" if ARGS.no_vectorize else ""),
+                   + (" vectorize" if ARGS.vectorize else " simdlen=1"),
         "device": str(device) + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""),
         "dtype": str(dtype).replace("torch.", ""),
         "loadavg_start": " ".join(f"{x:.2f}" for x in os.getloadavg()),
@@ -253,7 +254,7 @@ def configure_dynamo():
     for name in ("cache_size_limit", "recompile_limit"):
         if hasattr(cfg, name):
             setattr(cfg, name, max(getattr(cfg, name), 64))
-    if ARGS.no_vectorize:
+    if not ARGS.vectorize:
         torch._inductor.config.cpp.simdlen = 1
 
 
@@ -270,14 +271,9 @@ def warm_engine(system, device, dtype):
 def make_compiled(system):
     """Return (step_fn(state, ctrl), restore()) for the chosen compile scope and style."""
     if ARGS.compile_scope == "substep":
-        table = torchsim.pipeline.SUBSTEP
-        original = table[system.method]
-        table[system.method] = torch.compile(original, fullgraph=True, dynamic=False)
-
-        def restore():
-            table[system.method] = original
-
-        return (lambda s, c: torchsim.step(system, s, c)), restore
+        torch._dynamo.reset()  # a fresh compile per batch size, so that its compile time is measured
+        torchsim.compile_substeps(dynamic=False, vectorize=ARGS.vectorize)
+        return (lambda s, c: torchsim.step(system, s, c)), (lambda: torchsim.compile_substeps(False))
     if ARGS.compile_style == "closure":
         fn = torch.compile(lambda s, c: torchsim.step(system, s, c), fullgraph=True, dynamic=False)
         return fn, (lambda: None)

@@ -40,3 +40,17 @@ def test_one_hip_torque_leaves_other_hips(method):
     assert abs(ours[:3]).max() < 1e-3
     # hip_4 itself (MuJoCo ~9e-3 rad): within 50 %, a loose bound for a different integrator over 3 steps.
     assert abs(ours[3] - ref[3]) < 0.5 * abs(ref[3])
+
+
+def test_hinge_incidence_lists_each_bodys_hinges():
+    """The load-time table behind the sparse coupling matrix: the ant's torso carries its 4 hips (as their
+    parent), each thigh its hip (child) and knee (parent), each shin its knee (child), and nothing else."""
+    sys = torchsim.load_mjcf(str(ANT), dtype=F64)
+    joint = (sys.dof_flat // 6).tolist()
+    for body in range(sys.num_bodies):
+        listed = {(d, s) for d, s in zip(sys.body_hinge_dof[body].tolist(), sys.body_hinge_sign[body].tolist()) if s}
+        expected = {(d, 1.0) for d, j in enumerate(joint) if sys.jnt_child[j] == body}
+        expected |= {(d, -1.0) for d, j in enumerate(joint) if sys.jnt_parent[j] == body}
+        assert listed == expected, f"body {sys.body_names[body]}"
+    counts = sorted((sys.body_hinge_sign != 0).sum(1).tolist())
+    assert counts == [1, 1, 1, 1, 2, 2, 2, 2, 4]  # shins, thighs, torso

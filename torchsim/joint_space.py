@@ -14,6 +14,22 @@ from torchsim.kinematics import Bodies, JointFrames, dof_values
 from torchsim.system import System
 
 
+def hinge_incidence(jnt_child, jnt_parent, dof_jnt, dof_is_hinge, num_bodies: int):
+    """Load-time table of the hinge dofs acting on each body: ``(dof, sign) (N, K)`` tensors, ``K`` the most
+    hinges on one body, sign +1 for the child, -1 for the parent, 0 for padding (see ``System.body_hinge_dof``)."""
+    per_body = [[] for _ in range(num_bodies)]
+    for dof, (joint, hinge) in enumerate(zip(dof_jnt, dof_is_hinge)):
+        if hinge:
+            for body, sign in ((jnt_child[joint], 1.0), (jnt_parent[joint], -1.0)):
+                if body < num_bodies:  # the world takes no impulse
+                    per_body[body].append((dof, sign))
+    width = max([1] + [len(p) for p in per_body])
+    padded = [p + [(0, 0.0)] * (width - len(p)) for p in per_body]
+    dof = torch.tensor([[d for d, _ in p] for p in padded], dtype=torch.long).reshape(num_bodies, width)
+    sign = torch.tensor([[s for _, s in p] for p in padded], dtype=torch.float64).reshape(num_bodies, width)
+    return dof, sign
+
+
 def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, frames: JointFrames,
                      qd_ref: torch.Tensor, damping_h: torch.Tensor):
     """Armature (a rotor per hinge dof turning at ``qd_ref (B, D)``) and implicit damping ``damping_h = h c (..., D)``
@@ -22,7 +38,9 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     Dof ``i`` turns its child against its parent about ``u_i``, the row of ``G = A^-1`` for its slot (its axis for
     a single hinge), so ``A_ij = sum_b s_ib s_jb u_i^T I_b^-1 u_j`` (``s = +1`` child, ``-1`` parent) is the dofs'
     inverse inertia through the bodies; dofs sharing a body (the ant's four hips on the torso) are coupled
-    exactly, as in MuJoCo's joint-space mass matrix. Returns bodies and every dof's rate ``(B, D)`` (slides 0).
+    exactly, as in MuJoCo's joint-space mass matrix. Only the ``K`` hinges on each body enter its term (the
+    load-time table ``sys.body_hinge_dof``), so building ``A`` costs ``N K^2``, not ``N D^2``. Returns bodies and
+    every dof's rate ``(B, D)`` (slides 0).
     """
     joint = sys.dof_flat // 6
     slot = (sys.dof_flat % 6 - 3).clamp_min(0)
@@ -30,13 +48,15 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     g = frames.hinge_dual
     hinge = sys.dof_is_hinge
     u = torch.where(hinge[:, None], g[:, joint, slot], 0.0)  # (B, D, 3)
-    n_ext, n_dof = bodies.x_pos.shape[1], u.shape[1]
-    dof_index = torch.arange(n_dof, device=u.device)
-    v = u.new_zeros(u.shape[0], n_ext * n_dof, 3)
-    v = v.index_add(1, child * n_dof + dof_index, u).index_add(1, parent * n_dof + dof_index, -u)
-    v = v.view(u.shape[0], n_ext, n_dof, 3)
-    w = math.mm(inv.inertia, v.transpose(-1, -2))  # (B, N + 1, 3, D)
-    a = math.mm(v.transpose(1, 2).flatten(2), w.flatten(1, 2))  # (B, D, D): sums over bodies and components
+    n_body, n_dof = sys.num_bodies, u.shape[1]
+    if n_dof == 0:
+        return bodies, u.new_zeros(u.shape[:2])
+    on_body = sys.body_hinge_dof
+    u_body = u.index_select(1, on_body.flatten()).unflatten(1, on_body.shape) * sys.body_hinge_sign[..., None]
+    w_body = math.matvec(inv.inertia[:, :n_body, None], u_body)  # (B, N, K, 3)
+    blocks = (u_body.unsqueeze(-2) * w_body.unsqueeze(-3)).sum(-1)  # (B, N, K, K)
+    entry = (on_body.unsqueeze(-1) * n_dof + on_body.unsqueeze(-2)).flatten()
+    a = u.new_zeros(u.shape[0], n_dof * n_dof).index_add(1, entry, blocks.flatten(1)).view(-1, n_dof, n_dof)
     armature = torch.where(hinge, sys.dof_armature, 0.0)
     inertia = armature + torch.where(hinge, damping_h, 0.0)
     mask = (inertia > 0).to(u.dtype)
@@ -45,9 +65,10 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     rhs = mask * (compliance * armature * qd_ref - qd_raw)
     mat = mask[..., :, None] * a * mask[..., None, :] + torch.diag_embed(compliance + 1.0 - mask).expand_as(a)
     mu = torch.linalg.solve(mat, rhs)
-    impulse = (v * mu[:, None, :, None]).sum(2)
-    bodies = bodies._replace(xd_ang=bodies.xd_ang + math.matvec(inv.inertia, impulse))
-    return bodies, qd_raw + math.matvec(a, mu)
+    mu_body = mu.index_select(1, on_body.flatten()).unflatten(1, on_body.shape)
+    d_ang = (w_body * mu_body[..., None]).sum(2)  # I_b^-1 sum_k s_k u_k mu_k
+    xd_ang = torch.cat((bodies.xd_ang[:, :n_body] + d_ang, bodies.xd_ang[:, n_body:]), 1)
+    return bodies._replace(xd_ang=xd_ang), qd_raw + math.matvec(a, mu)
 
 
 def slide_inertia_and_damping(sys: System, before: Bodies, after: Bodies, axes: torch.Tensor, qd: torch.Tensor,

@@ -89,7 +89,10 @@ def cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
         a = a.view((1,) * (b.ndim - a.ndim) + a.shape)
     elif b.ndim < a.ndim:
         b = b.view((1,) * (a.ndim - b.ndim) + b.shape)
-    return torch.linalg.cross(a, b, dim=-1)
+    if not torch.compiler.is_compiling():
+        return torch.linalg.cross(a, b, dim=-1)
+    (ax, ay, az), (bx, by, bz) = a.unbind(-1), b.unbind(-1)
+    return torch.stack((ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx), -1)
 
 
 def dot(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -112,7 +115,11 @@ def _outer_flat(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Hamilton product ``a ⊗ b``."""
-    return _table_product(_outer_flat(a, b), "quat_product")
+    if not torch.compiler.is_compiling():
+        return _table_product(_outer_flat(a, b), "quat_product")
+    (aw, ax, ay, az), (bw, bx, by, bz) = a.unbind(-1), b.unbind(-1)
+    return torch.stack((aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw), -1)
 
 
 def quat_conj(q: torch.Tensor) -> torch.Tensor:
@@ -135,7 +142,12 @@ def quat_rotate_inv(q: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 def quat_to_mat(q: torch.Tensor) -> torch.Tensor:
     """Rotation matrix ``(..., 3, 3)`` of unit quaternion ``q``."""
-    return _table_product(_outer_flat(q, q), "rotation").unflatten(-1, (3, 3))
+    if not torch.compiler.is_compiling():
+        return _table_product(_outer_flat(q, q), "rotation").unflatten(-1, (3, 3))
+    w, x, y, z = q.unbind(-1)
+    return torch.stack((w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y),
+                        2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x),
+                        2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z), -1).unflatten(-1, (3, 3))
 
 
 def axis_angle_to_quat(axis: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
@@ -161,7 +173,11 @@ def quat_to_rot_vec(q: torch.Tensor) -> torch.Tensor:
 
 def skew(v: torch.Tensor) -> torch.Tensor:
     """Cross-product matrix ``[v]x`` with ``[v]x u = v × u``."""
-    return _table_product(v, "skew").unflatten(-1, (3, 3))
+    if not torch.compiler.is_compiling():
+        return _table_product(v, "skew").unflatten(-1, (3, 3))
+    x, y, z = v.unbind(-1)
+    zero = torch.zeros_like(x)
+    return torch.stack((zero, -z, y, z, zero, -x, -y, x, zero), -1).unflatten(-1, (3, 3))
 
 
 def inv3(m: torch.Tensor) -> torch.Tensor:

@@ -3,30 +3,10 @@
 import torch
 
 from torchsim import rigid
-from torchsim.kinematics import forward, joint_frames, read_q, with_world
+from torchsim.kinematics import Bodies, forward, joint_frames, read_q, with_world
 from torchsim.methods import spring, xpbd
 from torchsim.state import State
 from torchsim.system import System
-
-#: The substep function of each solution method; ``compile_substeps`` swaps in compiled versions.
-SUBSTEP = {"spring": spring.substep, "xpbd": xpbd.substep}
-_EAGER_SUBSTEP = dict(SUBSTEP)
-_COMPILED_SUBSTEP: dict[tuple[str, bool], object] = {}
-
-
-def compile_substeps(enabled: bool = True, dynamic: bool = True) -> None:
-    """Make every later ``step`` run ``torch.compile(fullgraph=True)`` substeps (``enabled=False``: eager again).
-
-    The substep is the unit worth compiling: it carries nearly all of a step's work and compiles in 1-2 minutes on
-    CPU, while the whole step (``substeps`` copies unrolled) takes far longer. Each method compiles on its first
-    use; ``dynamic=True`` lets one compilation serve every batch size. The switch is process-wide.
-    """
-    for method, substep in _EAGER_SUBSTEP.items():
-        key = (method, dynamic)
-        if enabled and key not in _COMPILED_SUBSTEP:
-            _COMPILED_SUBSTEP[key] = torch.compile(substep, fullgraph=True, dynamic=dynamic)
-        SUBSTEP[method] = _COMPILED_SUBSTEP[key] if enabled else substep
-
 
 def _check(sys: System, name: str, x: torch.Tensor, width: int, batch: int | None = None) -> None:
     if not isinstance(x, torch.Tensor):
@@ -59,11 +39,16 @@ def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
     bodies = with_world(state.x_pos, state.x_quat, state.xd_vel, state.xd_ang)
     for _ in range(sys.substeps):
         bodies = SUBSTEP[sys.method](sys, bodies, ctrl, inv_inertia_body, h)
+    return SUBSTEP["finish"](sys, state, bodies)
+
+
+def finish(sys: System, old: State, bodies: Bodies) -> State:
+    """The state after a step's substeps: ``q, qd`` read back from the bodies, divergence contained."""
     q, qd = read_q(sys, bodies, joint_frames(sys, bodies))
     n = sys.num_bodies
     new = State(bodies.x_pos[:, :n], bodies.x_quat[:, :n], bodies.xd_vel[:, :n], bodies.xd_ang[:, :n], q, qd,
-                state.diverged)
-    return contain_divergence(sys, state, new)
+                old.diverged)
+    return contain_divergence(sys, old, new)
 
 
 def contain_divergence(sys: System, old: State, new: State) -> State:
@@ -78,3 +63,31 @@ def contain_divergence(sys: System, old: State, new: State) -> State:
     diverged = old.diverged | ~(finite & in_bounds)
     fields = [torch.where(diverged.view((-1,) + (1,) * (o.ndim - 1)), o, n) for o, n in zip(old[:6], new[:6])]
     return State(*fields, diverged)
+
+
+#: The substep function of each solution method, and (key ``"finish"``) the step's read-back of ``q, qd`` and
+#: divergence check; ``compile_substeps`` swaps in compiled versions.
+SUBSTEP = {"spring": spring.substep, "xpbd": xpbd.substep, "finish": finish}
+_EAGER_SUBSTEP = dict(SUBSTEP)
+_COMPILED_SUBSTEP: dict[tuple[str, bool, bool], object] = {}
+
+
+def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool = False) -> None:
+    """Make every later ``step`` run ``torch.compile(fullgraph=True)`` substeps (``enabled=False``: eager again).
+
+    The substep is the unit worth compiling: it carries nearly all of a step's work and compiles in 1-2 minutes on
+    CPU, while the whole step (``substeps`` copies unrolled) takes far longer. The step's end (reading ``q, qd``
+    back and the divergence check) is compiled too: run eagerly at batch 4096 it cost as much as 10 compiled
+    substeps. Each compiles on its first use; ``dynamic=True`` lets one compilation serve every batch size. The
+    switch is process-wide.
+
+    ``vectorize=False`` (default) compiles CPU code without SIMD (inductor's ``cpp.simdlen=1``): inductor
+    vectorises the innermost axis, which here holds the 3 or 4 components of a vector or quaternion, so most lanes
+    are masked off; the scalar code is ~1.2x faster on the ant (``docs/benchmarks.md``). GPUs ignore the option.
+    """
+    options = None if vectorize else {"cpp.simdlen": 1}
+    for method, substep in _EAGER_SUBSTEP.items():
+        key = (method, dynamic, vectorize)
+        if enabled and key not in _COMPILED_SUBSTEP:
+            _COMPILED_SUBSTEP[key] = torch.compile(substep, fullgraph=True, dynamic=dynamic, options=options)
+        SUBSTEP[method] = _COMPILED_SUBSTEP[key] if enabled else substep

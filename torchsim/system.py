@@ -34,6 +34,8 @@ class System:
     Bodies:
         body_mass: (N,) [kg], batchable.  body_inertia: (N, 3, 3) about the COM in the body frame, batchable.
         body_ipos: (N, 3) COM in the body frame.  body_parent: (N,) ext index of the parent body.
+        body_hinge_dof, body_hinge_sign: (N, K) the hinge dofs that act on each body, +1 where it is their child
+        and -1 their parent (padding: dof 0, sign 0); the sparsity of the hinges' coupling through the bodies.
     Joints (one per non-free body; a body's hinges/slides/ball relative to its parent form one joint):
         jnt_child, jnt_parent: (J,).  jnt_anchor_child: (J, 3) anchor from the child COM, child frame.
         jnt_anchor_parent: (J, 3) anchor at q = 0 from the parent COM, parent frame (world frame for the world).
@@ -88,6 +90,8 @@ class System:
     body_ipos: torch.Tensor
     body_parent: torch.Tensor
     body_names: tuple
+    body_hinge_dof: torch.Tensor
+    body_hinge_sign: torch.Tensor
     # joints
     jnt_child: torch.Tensor
     jnt_parent: torch.Tensor
