@@ -77,8 +77,8 @@ def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool
 
     The substep is the unit worth compiling: it carries nearly all of a step's work and compiles in 1-2 minutes on
     CPU, while the whole step (``substeps`` copies unrolled) takes far longer. The step's end (reading ``q, qd``
-    back and the divergence check) is compiled too: run eagerly at batch 4096 it cost as much as 10 compiled
-    substeps. Each compiles on its first use; ``dynamic=True`` lets one compilation serve every batch size. The
+    back and the divergence check) is compiled too: run eagerly at batch 4096 it costs about one compiled
+    substep. Each compiles on its first use; ``dynamic=True`` lets one compilation serve every batch size. The
     switch is process-wide.
 
     ``vectorize=False`` (default) compiles CPU code without SIMD (inductor's ``cpp.simdlen=1``): inductor

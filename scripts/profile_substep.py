@@ -1,0 +1,124 @@
+"""Time one compiled physics substep, and with ``--stages`` each stage of the spring substep compiled alone.
+
+The diagnostic behind ``docs/benchmarks.md`` ("Speed pass 2"): where a substep's time goes, and what inductor's
+code-generation options cost. Start: the model's first keyframe (or ``qpos0``) with a 5 cm drop and small random
+velocities, random controls, fixed seed; the timed substeps continue from there. Reports the median of
+``--repeats`` single substeps after 3 warm-up calls.
+
+    python scripts/profile_substep.py                              # ant, spring, batch 4096, 1 thread, scalar code
+    python scripts/profile_substep.py --vectorize --dynamic        # inductor's SIMD code, dynamic shapes
+    python scripts/profile_substep.py --stages                     # per-stage table (spring only)
+"""
+
+import argparse
+import pathlib
+import statistics
+import time
+
+import torch
+
+ROOT = pathlib.Path(__file__).resolve().parent.parent
+
+
+def parse_args():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--model", default=str(ROOT / "envs" / "assets" / "ant.xml"))
+    p.add_argument("--method", default="spring", choices=["spring", "xpbd"])
+    p.add_argument("--batch", type=int, default=4096)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--repeats", type=int, default=15)
+    p.add_argument("--vectorize", action="store_true", help="inductor's SIMD code (default: cpp.simdlen=1)")
+    p.add_argument("--dynamic", action="store_true", help="compile with dynamic shapes")
+    p.add_argument("--stages", action="store_true", help="also time each stage of the spring substep alone")
+    return p.parse_args()
+
+
+def timed(fn, args, repeats):
+    """(compile seconds, median seconds per call) of ``fn(*args)``."""
+    start = time.perf_counter()
+    fn(*args)
+    compile_s = time.perf_counter() - start
+    for _ in range(3):
+        fn(*args)
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn(*args)
+        times.append(time.perf_counter() - start)
+    return compile_s, statistics.median(times)
+
+
+def spring_stages(sys, bodies, ctrl, inv_body, h):
+    """(name, function, args) for each stage of ``spring.substep``, with inputs computed eagerly once."""
+    from torchsim import integrator, joint_space, rigid
+    from torchsim.actuators import dof_forces
+    from torchsim.kinematics import dof_values, joint_frames
+    from torchsim.methods import spring
+
+    inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_body)
+    fr = joint_frames(sys, bodies)
+    axes = dof_values(sys, fr.axes)
+
+    def forces(bodies, fr, inv):
+        q, qd = dof_values(sys, fr.q) + sys.dof_ref, dof_values(sys, fr.qd)
+        tau = dof_forces(sys, q, qd, ctrl) + spring.limit_forces(sys, q, qd, rigid.dof_inverse_mass(sys, inv, axes), h)
+        return rigid.dof_wrench(sys, bodies, axes, tau)
+
+    force, torque = spring.joint_wrench(sys, bodies, fr, inv, h)
+    after = integrator.velocity_update(sys, bodies, inv, inv_body, force, torque, h)
+    return [
+        ("inverse inertias", lambda b: rigid.inverse_inertia(sys, b.x_quat, inv_body), (bodies,)),
+        ("joint frames", lambda b: joint_frames(sys, b), (bodies,)),
+        ("actuator and limit forces", forces, (bodies, fr, inv)),
+        ("joint springs", lambda b, f, i: spring.joint_wrench(sys, b, f, i, h), (bodies, fr, inv)),
+        ("velocity update", lambda b, i, f, t: integrator.velocity_update(sys, b, i, inv_body, f, t, h),
+         (bodies, inv, force, torque)),
+        ("armature and damping", lambda b, a, f, i: joint_space.inertia_and_damping(sys, b, a, f, i, h)[0],
+         (bodies, after, fr, inv)),
+        ("armature-loaded inertias", lambda i: joint_space.armature_loaded_inertia(sys, i, axes), (inv,)),
+        ("contacts", lambda a, i: spring.contact_impulses(sys, a, i, h), (after, inv)),
+        ("positions", lambda a: integrator.integrate_positions(a, h), (after,)),
+    ]
+
+
+def main():
+    args = parse_args()
+    torch.set_num_threads(args.threads)
+    torch.manual_seed(0)
+    import mujoco
+
+    import torchsim
+    from torchsim import pipeline, rigid
+    from torchsim.kinematics import with_world
+
+    sys = torchsim.load_mjcf(args.model, method=args.method).to(dtype=torch.float32)
+    m = mujoco.MjModel.from_xml_path(args.model)
+    q = torch.tensor(m.key_qpos[0] if m.nkey else m.qpos0, dtype=torch.float32).repeat(args.batch, 1)
+    if sys.free_qpos.numel():
+        q[:, sys.free_qpos[0] + 2] -= 0.05
+    state = torchsim.init(sys, q, 0.1 * torch.randn(args.batch, sys.nv))
+    ctrl = 2 * torch.rand(args.batch, sys.nu) - 1
+    inv_body = rigid.body_inverse_inertia(sys)
+    bodies = with_world(state.x_pos, state.x_quat, state.xd_vel, state.xd_ang)
+    h = sys.timestep / sys.substeps
+    options = None if args.vectorize else {"cpp.simdlen": 1}
+
+    def compiled(fn):
+        return torch.compile(fn, fullgraph=True, dynamic=args.dynamic, options=options)
+
+    print(f"{pathlib.Path(args.model).name}, {args.method}, batch {args.batch}, {args.threads} thread(s), "
+          f"{'SIMD' if args.vectorize else 'scalar'} code, {'dynamic' if args.dynamic else 'static'} shapes, "
+          f"torch {torch.__version__}")
+    substep = compiled(pipeline.SUBSTEP[args.method])
+    compile_s, sec = timed(substep, (sys, bodies, ctrl, inv_body, h), args.repeats)
+    print(f"substep: {sec * 1e3:.2f} ms (compile {compile_s:.0f} s)")
+    if args.stages:
+        if args.method != "spring":
+            raise SystemExit("--stages times the spring substep's stages; use --method spring")
+        for name, fn, fn_args in spring_stages(sys, bodies, ctrl, inv_body, h):
+            compile_s, sec = timed(compiled(fn), fn_args, args.repeats)
+            print(f"  {name:26s} {sec * 1e3:7.2f} ms (compile {compile_s:.0f} s)")
+
+
+if __name__ == "__main__":
+    main()
