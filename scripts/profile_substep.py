@@ -51,25 +51,19 @@ def timed(fn, args, repeats):
 def spring_stages(sys, bodies, ctrl, inv_body, h):
     """(name, function, args) for each stage of ``spring.substep``, with inputs computed eagerly once."""
     from torchsim import integrator, joint_space, rigid
-    from torchsim.actuators import dof_forces
     from torchsim.kinematics import dof_values, joint_frames
     from torchsim.methods import spring
 
     inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_body)
     fr = joint_frames(sys, bodies)
     axes = dof_values(sys, fr.axes)
-
-    def forces(bodies, fr, inv):
-        q, qd = dof_values(sys, fr.q) + sys.dof_ref, dof_values(sys, fr.qd)
-        tau = dof_forces(sys, q, qd, ctrl) + spring.limit_forces(sys, q, qd, rigid.dof_inverse_mass(sys, inv, axes), h)
-        return rigid.dof_wrench(sys, bodies, axes, tau)
-
     force, torque = spring.joint_wrench(sys, bodies, fr, inv, h)
     after = integrator.velocity_update(sys, bodies, inv, inv_body, force, torque, h)
     return [
         ("inverse inertias", lambda b: rigid.inverse_inertia(sys, b.x_quat, inv_body), (bodies,)),
         ("joint frames", lambda b: joint_frames(sys, b), (bodies,)),
-        ("actuator and limit forces", forces, (bodies, fr, inv)),
+        ("actuator and limit forces", lambda b, f, i: spring.dof_force_wrench(sys, b, f, i, axes, ctrl, h),
+         (bodies, fr, inv)),
         ("joint springs", lambda b, f, i: spring.joint_wrench(sys, b, f, i, h), (bodies, fr, inv)),
         ("velocity update", lambda b, i, f, t: integrator.velocity_update(sys, b, i, inv_body, f, t, h),
          (bodies, inv, force, torque)),

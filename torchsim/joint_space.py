@@ -52,7 +52,11 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     if n_dof == 0:
         return bodies, u.new_zeros(u.shape[:2])
     on_body = sys.body_hinge_dof
-    u_body = u.index_select(1, on_body.flatten()).unflatten(1, on_body.shape) * sys.body_hinge_sign[..., None]
+
+    def per_body(x):  # (B, D, ...) -> (B, N, K, ...)
+        return x.index_select(1, on_body.flatten()).unflatten(1, on_body.shape)
+
+    u_body = per_body(u) * sys.body_hinge_sign[..., None]
     w_body = math.matvec(inv.inertia[:, :n_body, None], u_body)  # (B, N, K, 3)
     blocks = (u_body.unsqueeze(-2) * w_body.unsqueeze(-3)).sum(-1)  # (B, N, K, K)
     entry = (on_body.unsqueeze(-1) * n_dof + on_body.unsqueeze(-2)).flatten()
@@ -65,8 +69,7 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     rhs = mask * (compliance * armature * qd_ref - qd_raw)
     mat = mask[..., :, None] * a * mask[..., None, :] + torch.diag_embed(compliance + 1.0 - mask).expand_as(a)
     mu = torch.linalg.solve(mat, rhs)
-    mu_body = mu.index_select(1, on_body.flatten()).unflatten(1, on_body.shape)
-    d_ang = (w_body * mu_body[..., None]).sum(2)  # I_b^-1 sum_k s_k u_k mu_k
+    d_ang = (w_body * per_body(mu)[..., None]).sum(2)  # I_b^-1 sum_k s_k u_k mu_k
     xd_ang = torch.cat((bodies.xd_ang[:, :n_body] + d_ang, bodies.xd_ang[:, n_body:]), 1)
     return bodies._replace(xd_ang=xd_ang), qd_raw + math.matvec(a, mu)
 

@@ -89,15 +89,21 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: 
                                      scale_a[..., None], scale_b[..., None])
 
 
+def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.InverseInertia, axes: torch.Tensor,
+                     ctrl: torch.Tensor, h: float):
+    """Ext-indexed ``(force, torque)`` of the dofs' generalized forces: actuators, passive springs and limits."""
+    q, qd = dof_values(sys, fr.q) + sys.dof_ref, dof_values(sys, fr.qd)
+    tau = dof_forces(sys, q, qd, ctrl) + limit_forces(sys, q, qd, rigid.dof_inverse_mass(sys, inv, axes), h)
+    return rigid.dof_wrench(sys, bodies, axes, tau)
+
+
 def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: torch.Tensor, h: float) -> Bodies:
     """Forces (actuators, limits, joint springs) -> velocities (armature, damping) -> contact impulses (on
     armature-loaded links) -> positions."""
     inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
     fr = joint_frames(sys, bodies)
     axes = dof_values(sys, fr.axes)
-    q, qd = dof_values(sys, fr.q) + sys.dof_ref, dof_values(sys, fr.qd)
-    tau = dof_forces(sys, q, qd, ctrl) + limit_forces(sys, q, qd, rigid.dof_inverse_mass(sys, inv, axes), h)
-    force, torque = rigid.dof_wrench(sys, bodies, axes, tau)
+    force, torque = dof_force_wrench(sys, bodies, fr, inv, axes, ctrl, h)
     spring_force, spring_torque = joint_wrench(sys, bodies, fr, inv, h)
     after = integrator.velocity_update(sys, bodies, inv, inv_inertia_body, force + spring_force, torque + spring_torque, h)
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
