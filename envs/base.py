@@ -226,7 +226,9 @@ class TorchsimEnv(EnvBase):
 
         Keywords (each a scalar or a ``(num_envs,)`` tensor; omitted ones return to 1): ``mass_scale`` (every
         body's mass and inertia), ``friction_scale`` (every contact pair's sliding friction),
-        ``actuator_gain_scale`` (every actuator's gain, i.e. motor strength). The model is not rebuilt.
+        ``actuator_gain_scale`` (every actuator's strength: its gain and its bias terms together, so a position
+        servo's ``kp`` and ``kv`` scale and its set point stays where the control puts it). The model is not
+        rebuilt.
         """
         unknown = set(scales) - set(PHYSICS_PARAMS)
         if unknown:
@@ -238,6 +240,7 @@ class TorchsimEnv(EnvBase):
         self.sys = b.replace(
             body_mass=b.body_mass * mass, body_inertia=b.body_inertia * mass[..., None, None],
             act_gain=b.act_gain * s["actuator_gain_scale"][:, None],
+            act_bias=b.act_bias * s["actuator_gain_scale"][:, None, None],
             contact_groups=tuple(g._replace(friction=g.friction * s["friction_scale"][:, None])
                                  for g in b.contact_groups))
 

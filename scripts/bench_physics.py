@@ -58,6 +58,8 @@ def parse_args(argv=None):
     p.add_argument("--vectorize", action="store_true",
                    help="Inductor CPU codegen with SIMD (its default; torchsim.compile_substeps compiles without, "
                         "cpp.simdlen=1, because SIMD over 3-4 vector components is slower here)")
+    p.add_argument("--no-cpp-wrapper", action="store_true",
+                   help="Inductor's Python wrapper around the kernels (torchsim.compile_substeps uses its C++ wrapper)")
     p.add_argument("--compile-style", choices=["closure", "arg"], default="closure",
                    help="'closure': compile lambda s, c: step(sys, s, c); 'arg': compile step itself, sys as argument")
     p.add_argument("--keep-inductor-cache", action="store_true",
@@ -185,13 +187,15 @@ def auto_steps(step_time: float) -> int:
     return int(min(ARGS.max_steps, max(1, math.ceil(ARGS.min_time / max(step_time, 1e-9)))))
 
 
-def bench_torchsim(step_fn, state, ctrl, batch: int, device, label: str) -> dict:
-    """Warm up (second call; the first is the compile call for compiled functions), then time repeats."""
+def bench_torchsim(step_fn, state, ctrl, batch: int, device, label: str, graphs=None) -> dict:
+    """Warm up (two calls after the compile call of compiled functions), then time repeats; ``graphs()``, if
+    given, counts compiled graphs, to report recompilations inside the timed repeats."""
     holder = {"s": state}
 
     def one():
         holder["s"] = step_fn(holder["s"], ctrl)
 
+    one()
     t_step = timed(one, device)
     steps = auto_steps(t_step)
 
@@ -200,13 +204,14 @@ def bench_torchsim(step_fn, state, ctrl, batch: int, device, label: str) -> dict
             holder["s"] = step_fn(holder["s"], ctrl)
 
     rates = []
+    graphs_before = graphs() if graphs else 0
     for r in range(ARGS.repeats):
         dt = timed(run, device)
         rates.append(batch * steps / dt)
         log(f"    {label}: repeat {r + 1}/{ARGS.repeats}: {steps} steps in {dt:.3f} s -> {rates[-1]:,.0f} steps/s")
     diverged = int(holder["s"].diverged.sum().item())
     return {"rate": statistics.median(rates), "steps": steps, "repeats": len(rates), "diverged": diverged,
-            "warm_step_s": t_step}
+            "warm_step_s": t_step, "recompiles": (graphs() - graphs_before) if graphs else 0}
 
 
 def mujoco_rollout_rate(m, datas, init_state, control, nstep, out) -> float:
@@ -272,7 +277,7 @@ def make_compiled(system):
     """Return (step_fn(state, ctrl), restore()) for the chosen compile scope and style."""
     if ARGS.compile_scope == "substep":
         torch._dynamo.reset()  # a fresh compile per batch size, so that its compile time is measured
-        torchsim.compile_substeps(dynamic=False, vectorize=ARGS.vectorize)
+        torchsim.compile_substeps(dynamic=False, vectorize=ARGS.vectorize, cpp_wrapper=not ARGS.no_cpp_wrapper)
         return (lambda s, c: torchsim.step(system, s, c)), (lambda: torchsim.compile_substeps(False))
     if ARGS.compile_style == "closure":
         fn = torch.compile(lambda s, c: torchsim.step(system, s, c), fullgraph=True, dynamic=False)
@@ -409,11 +414,13 @@ def main():
                         log(f"  {method} batch={batch} compiled: compile (first call) {compile_s:.1f} s, "
                             f"{g1 - g0} graph(s)")
                         res["compiled"] = bench_torchsim(fn, holder["s"], ctrl, batch, device,
-                                                         f"{method} B={batch} compiled")
+                                                         f"{method} B={batch} compiled", graphs)
                         res["compiled"]["compile_s"] = compile_s
-                        if graphs() != g1:
-                            log(f"  WARNING: {graphs() - g1} recompilation(s) during the compiled timing; "
-                                "that time is included in the compiled steps/s")
+                        if res["compiled"]["recompiles"]:
+                            log(f"  WARNING: {res['compiled']['recompiles']} recompilation(s) during the timed "
+                                "repeats; that time is included in the compiled steps/s")
+                        elif graphs() != g1:
+                            log(f"  note: {graphs() - g1} recompilation(s) during the warm-up calls (not timed)")
                         log(f"  {method} batch={batch} compiled: {res['compiled']['rate']:,.0f} steps/s "
                             f"(median of {res['compiled']['repeats']} x {res['compiled']['steps']} steps, "
                             f"diverged {res['compiled']['diverged']}/{batch})")

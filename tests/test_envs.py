@@ -10,6 +10,7 @@ from torchrl.envs.utils import check_env_specs
 
 import torchsim
 import torchsim.envs as envs
+from torchsim import actuators
 
 NAMES = envs.list()
 
@@ -266,6 +267,23 @@ def test_domain_randomisation_is_per_env():
     torch.testing.assert_close(_run(alone, q[1:2], qd[1:2], actions[:, 1:2]), obs[:, 1:2], atol=1e-9, rtol=0)
     with pytest.raises(ValueError, match="unknown physics parameter"):
         batch.set_physics(gravity_scale=2.0)
+
+
+def test_actuator_gain_scale_keeps_servo_set_points():
+    """Scaling a position servo's strength scales its whole force, kp (target - q): the gain and the bias term
+    together. A servo held at its target exerts no force at any scale, and away from it the force scales."""
+    env = envs.make("ur5e_reach", num_envs=3, dtype=torch.float64)
+    env.set_physics(actuator_gain_scale=torch.tensor([1.0, 0.5, 2.0], dtype=torch.float64))
+    sys = env.sys
+    q = torch.rand(1, sys.dof_qpos.numel(), dtype=torch.float64).expand(3, -1)
+    qd = torch.zeros_like(q)
+    passive = -sys.dof_stiffness * (q - sys.dof_springref)
+    at_target = sys.act_gear * q.index_select(1, sys.act_dof)
+    force = actuators.dof_forces(sys, q, qd, at_target) - passive
+    assert force.abs().max() < 1e-9
+    force = actuators.dof_forces(sys, q, qd, at_target + 0.01) - passive
+    assert force[0].abs().min() > 0
+    torch.testing.assert_close(force[1:], force[0] * torch.tensor([[0.5], [2.0]], dtype=torch.float64))
 
 
 # fetch: targets that respawn (task state); 1 substep keeps its traced step small

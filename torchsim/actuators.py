@@ -16,7 +16,8 @@ def dof_forces(sys: System, q: torch.Tensor, qd: torch.Tensor, ctrl: torch.Tenso
     ctrl = torch.where(sys.act_ctrl_limited, torch.minimum(torch.maximum(ctrl, lo), hi), ctrl)
     q_act, qd_act = q.index_select(1, sys.act_dof), qd.index_select(1, sys.act_dof)
     bias = sys.act_bias
-    force = sys.act_gain * ctrl + bias[:, 0] + bias[:, 1] * sys.act_gear * q_act + bias[:, 2] * sys.act_gear * qd_act
+    force = (sys.act_gain * ctrl + bias[..., 0] + bias[..., 1] * sys.act_gear * q_act
+             + bias[..., 2] * sys.act_gear * qd_act)
     f_lo, f_hi = sys.act_force_range.unbind(-1)
     force = torch.where(sys.act_force_limited, torch.minimum(torch.maximum(force, f_lo), f_hi), force)
     spring = -sys.dof_stiffness * (q - sys.dof_springref)

@@ -68,7 +68,7 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     qd_raw = (u * (bodies.xd_ang.index_select(1, child) - bodies.xd_ang.index_select(1, parent))).sum(-1)
     rhs = mask * (compliance * armature * qd_ref - qd_raw)
     mat = mask[..., :, None] * a * mask[..., None, :] + torch.diag_embed(compliance + 1.0 - mask).expand_as(a)
-    mu = torch.linalg.solve(mat, rhs)
+    mu = math.spd_solve(mat, rhs)
     d_ang = (w_body * per_body(mu)[..., None]).sum(2)  # I_b^-1 sum_k s_k u_k mu_k
     xd_ang = torch.cat((bodies.xd_ang[:, :n_body] + d_ang, bodies.xd_ang[:, n_body:]), 1)
     return bodies._replace(xd_ang=xd_ang), qd_raw + math.matvec(a, mu)

@@ -188,6 +188,34 @@ def inv3(m: torch.Tensor) -> torch.Tensor:
     return rows / (rows[..., 0, :] * c0).sum(-1)[..., None, None]
 
 
+def spd_solve(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Solution ``x (..., n)`` of ``a x = b`` for symmetric positive-definite ``a (..., n, n)``.
+
+    Eager mode calls LAPACK through ``solve_ex``, which skips the per-call singularity check, so one diverged
+    env's matrix cannot raise for the whole batch. Under ``torch.compile`` the Cholesky factorisation and both
+    substitutions are unrolled over ``n`` into elementwise ops that inductor fuses with the rest of the substep:
+    a LAPACK call would split the substep's kernel in two and, in inductor's C++ wrapper, go through a slow
+    fallback (there is no C shim for it).
+    """
+    if not torch.compiler.is_compiling():
+        return torch.linalg.solve_ex(a, b).result
+    n = a.shape[-1]
+    low = [[None] * n for _ in range(n)]  # low[i][j], j <= i: the Cholesky factor L, a = L L^T
+    inv_diag = [None] * n
+    for j in range(n):
+        inv_diag[j] = torch.rsqrt(a[..., j, j] - sum(low[j][k] * low[j][k] for k in range(j)))
+        low[j][j] = 1.0 / inv_diag[j]
+        for i in range(j + 1, n):
+            low[i][j] = (a[..., i, j] - sum(low[i][k] * low[j][k] for k in range(j))) * inv_diag[j]
+    y = [None] * n  # L y = b
+    for i in range(n):
+        y[i] = (b[..., i] - sum(low[i][k] * y[k] for k in range(i))) * inv_diag[i]
+    x = [None] * n  # L^T x = y
+    for i in reversed(range(n)):
+        x[i] = (y[i] - sum(low[k][i] * x[k] for k in range(i + 1, n))) * inv_diag[i]
+    return torch.stack(x, -1)
+
+
 def matvec(m: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """``m @ v`` for ``(..., 3, 3)`` by ``(..., 3)``."""
     return (m * v.unsqueeze(-2)).sum(-1)

@@ -27,8 +27,10 @@ def init(sys: System, q: torch.Tensor, qd: torch.Tensor) -> State:
     bodies = with_world(*forward(sys, q, qd))
     q, qd = read_q(sys, bodies, joint_frames(sys, bodies))
     n = sys.num_bodies
-    return State(bodies.x_pos[:, :n], bodies.x_quat[:, :n], bodies.xd_vel[:, :n], bodies.xd_ang[:, :n], q, qd,
-                 torch.zeros(q.shape[0], dtype=torch.bool, device=q.device))
+    # Copies with the strides step's results have (a batch of 1 included): a compiled substep guards on strides
+    # and would otherwise compile a second time on the first step's output.
+    poses = [x[:, :n].clone(memory_format=torch.contiguous_format) for x in bodies]
+    return State(*poses, q, qd, torch.zeros(q.shape[0], dtype=torch.bool, device=q.device))
 
 
 def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
@@ -69,10 +71,11 @@ def contain_divergence(sys: System, old: State, new: State) -> State:
 #: divergence check; ``compile_substeps`` swaps in compiled versions.
 SUBSTEP = {"spring": spring.substep, "xpbd": xpbd.substep, "finish": finish}
 _EAGER_SUBSTEP = dict(SUBSTEP)
-_COMPILED_SUBSTEP: dict[tuple[str, bool, bool], object] = {}
+_COMPILED_SUBSTEP: dict[tuple[str, bool, bool, bool], object] = {}
 
 
-def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool = False) -> None:
+def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool = False,
+                     cpp_wrapper: bool = True) -> None:
     """Make every later ``step`` run ``torch.compile(fullgraph=True)`` substeps (``enabled=False``: eager again).
 
     The substep is the unit worth compiling: it carries nearly all of a step's work and compiles in 1-2 minutes on
@@ -84,10 +87,15 @@ def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool
     ``vectorize=False`` (default) compiles CPU code without SIMD (inductor's ``cpp.simdlen=1``): inductor
     vectorises the innermost axis, which here holds the 3 or 4 components of a vector or quaternion, so most lanes
     are masked off; the scalar code is ~1.2x faster on the ant (``docs/benchmarks.md``). GPUs ignore the option.
+
+    ``cpp_wrapper=True`` (default) has inductor write the code that allocates buffers and calls the kernels in C++
+    instead of Python: a substep is one kernel with ~120 buffers, and driving those from Python cost about as much
+    as the kernel itself below batch ~100 (batch 64: ~2x faster substeps; batch 4096: unchanged). It adds ~10-25 s
+    to each compilation. It was measured on CPU only; no GPU was at hand to test it on CUDA.
     """
-    options = None if vectorize else {"cpp.simdlen": 1}
+    options = {"cpp_wrapper": cpp_wrapper} | ({} if vectorize else {"cpp.simdlen": 1})
     for method, substep in _EAGER_SUBSTEP.items():
-        key = (method, dynamic, vectorize)
+        key = (method, dynamic, vectorize, cpp_wrapper)
         if enabled and key not in _COMPILED_SUBSTEP:
             _COMPILED_SUBSTEP[key] = torch.compile(substep, fullgraph=True, dynamic=dynamic, options=options)
         SUBSTEP[method] = _COMPILED_SUBSTEP[key] if enabled else substep

@@ -59,7 +59,7 @@ class System:
         ball_joint, ball_qpos, ball_qvel: (nball,) ball joints and their addresses.
         free_body, free_qpos, free_qvel: (nfree,) free-floating bodies and their addresses.
     Actuators (MuJoCo ``gaintype=fixed``, ``biastype=none|affine``, joint transmission):
-        act_dof: (U,) dof index.  act_gear, act_gain: (U,), batchable.  act_bias: (U, 3).
+        act_dof: (U,) dof index.  act_gear, act_gain: (U,), batchable.  act_bias: (U, 3), batchable.
         act_ctrl_range, act_force_range: (U, 2); act_ctrl_limited, act_force_limited: (U,) bool.
     Geometry and contacts:
         geom_body: (G,) ext body index.  geom_pos, geom_quat: (G, 3), (G, 4) from the body COM in the body frame
