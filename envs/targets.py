@@ -6,7 +6,10 @@ import math
 import torch
 
 from torchsim import math as tmath
+from torchsim.lanes import components_last
 from torchsim.envs.base import TorchsimEnv
+
+quat_rotate, quat_rotate_inv = components_last(tmath.quat_rotate), components_last(tmath.quat_rotate_inv)
 
 
 def ring_points(center: torch.Tensor, r_min: float, r_span: float) -> torch.Tensor:
@@ -72,15 +75,15 @@ class Fetch(TorchsimEnv):
 
     def _axes(self, state):
         quat = state.q[:, 3:7]
-        return tmath.quat_rotate(quat, quat.new_tensor([1.0, 0.0, 0.0])), tmath.quat_rotate(
+        return quat_rotate(quat, quat.new_tensor([1.0, 0.0, 0.0])), quat_rotate(
             quat, quat.new_tensor([0.0, 0.0, 1.0]))
 
     def _observation(self, state, ctrl):
         quat = state.q[:, 3:7]
         forward, up = self._axes(state)
         distance, toward = self._target(state, self.task)
-        return torch.cat((forward, up, distance[:, None], tmath.quat_rotate_inv(quat, toward), state.q[:, 2:3],
-                          state.q[:, 7:], state.qd[:, 6:], tmath.quat_rotate_inv(quat, state.qd[:, :3]),
+        return torch.cat((forward, up, distance[:, None], quat_rotate_inv(quat, toward), state.q[:, 2:3],
+                          state.q[:, 7:], state.qd[:, 6:], quat_rotate_inv(quat, state.qd[:, :3]),
                           state.qd[:, 3:6]), -1)
 
     def _reward(self, before, after, ctrl):
@@ -158,7 +161,7 @@ class Grasp(TorchsimEnv):
         """``(B,)`` number of fingertip capsules within ``touch_gap`` of the ball."""
         pos, quat = self.mj_body_poses(state)
         tips, tip_quat, ball = pos[:, 1:5], quat[:, 1:5], pos[:, 5:6]
-        half = tmath.quat_rotate(tip_quat, pos.new_tensor([0.0, self.tip_half_length, 0.0]))  # capsule along y
+        half = quat_rotate(tip_quat, pos.new_tensor([0.0, self.tip_half_length, 0.0]))  # capsule along y
         along = ((ball - tips) * half).sum(-1, keepdim=True) / (half * half).sum(-1, keepdim=True)
         nearest = tips + along.clamp(-1.0, 1.0) * half
         gap = (ball - nearest).norm(dim=-1) - self.ball_radius - self.tip_radius

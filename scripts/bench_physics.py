@@ -55,9 +55,9 @@ def parse_args(argv=None):
                         "which torchsim.step's loop calls sys.substeps times, and the step's read-back; "
                         "'step': torch.compile(torchsim.step) as a whole (all substeps unrolled into one graph; on a "
                         "2-core CPU Inductor had not finished one xpbd variant after 25 min)")
-    p.add_argument("--vectorize", action="store_true",
-                   help="Inductor CPU codegen with SIMD (its default; torchsim.compile_substeps compiles without, "
-                        "cpp.simdlen=1, because SIMD over 3-4 vector components is slower here)")
+    p.add_argument("--scalar", action="store_true",
+                   help="Inductor CPU codegen without SIMD (cpp.simdlen=1); default: SIMD, which in the engine's "
+                        "lanes layout runs across envs")
     p.add_argument("--no-cpp-wrapper", action="store_true",
                    help="Inductor's Python wrapper around the kernels (torchsim.compile_substeps uses its C++ wrapper)")
     p.add_argument("--compile-style", choices=["closure", "arg"], default="closure",
@@ -129,7 +129,7 @@ def machine_info(device: torch.device, dtype: torch.dtype) -> dict:
         "cpu_count": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
         "compile": f"scope={ARGS.compile_scope}" + (f" style={ARGS.compile_style}" if ARGS.compile_scope == "step" else "")
-                   + (" vectorize" if ARGS.vectorize else " simdlen=1"),
+                   + (" simdlen=1" if ARGS.scalar else " SIMD"),
         "device": str(device) + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""),
         "dtype": str(dtype).replace("torch.", ""),
         "loadavg_start": " ".join(f"{x:.2f}" for x in os.getloadavg()),
@@ -259,7 +259,7 @@ def configure_dynamo():
     for name in ("cache_size_limit", "recompile_limit"):
         if hasattr(cfg, name):
             setattr(cfg, name, max(getattr(cfg, name), 64))
-    if not ARGS.vectorize:
+    if ARGS.scalar:
         torch._inductor.config.cpp.simdlen = 1
 
 
@@ -277,7 +277,7 @@ def make_compiled(system):
     """Return (step_fn(state, ctrl), restore()) for the chosen compile scope and style."""
     if ARGS.compile_scope == "substep":
         torch._dynamo.reset()  # a fresh compile per batch size, so that its compile time is measured
-        torchsim.compile_substeps(dynamic=False, vectorize=ARGS.vectorize, cpp_wrapper=not ARGS.no_cpp_wrapper)
+        torchsim.compile_substeps(dynamic=False, vectorize=not ARGS.scalar, cpp_wrapper=not ARGS.no_cpp_wrapper)
         return (lambda s, c: torchsim.step(system, s, c)), (lambda: torchsim.compile_substeps(False))
     if ARGS.compile_style == "closure":
         fn = torch.compile(lambda s, c: torchsim.step(system, s, c), fullgraph=True, dynamic=False)

@@ -5,11 +5,10 @@ code-generation options cost. Start: the model's first keyframe (or ``qpos0``) w
 velocities, random controls, fixed seed; the timed substeps continue from there. Reports the median of
 ``--repeats`` single substeps after 3 warm-up calls.
 
-    python scripts/profile_substep.py                              # ant, spring, batch 4096, 1 thread, scalar code
-    python scripts/profile_substep.py --vectorize --dynamic        # inductor's SIMD code, dynamic shapes
+    python scripts/profile_substep.py                              # ant, spring, batch 4096, 1 thread, SIMD code
+    python scripts/profile_substep.py --scalar --dynamic           # scalar code (cpp.simdlen=1), dynamic shapes
     python scripts/profile_substep.py --batch 64 --no-cpp-wrapper  # inductor's Python wrapper (default: C++)
     python scripts/profile_substep.py --stages                     # per-stage table (spring only)
-    python scripts/profile_substep.py --layout                     # one stage in batch-first vs batch-last layout
 """
 
 import argparse
@@ -29,12 +28,10 @@ def parse_args():
     p.add_argument("--batch", type=int, default=4096)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--repeats", type=int, default=15)
-    p.add_argument("--vectorize", action="store_true", help="inductor's SIMD code (default: cpp.simdlen=1)")
+    p.add_argument("--scalar", action="store_true", help="scalar code (cpp.simdlen=1; default: inductor's SIMD code)")
     p.add_argument("--no-cpp-wrapper", action="store_true", help="inductor's Python wrapper around the kernels")
     p.add_argument("--dynamic", action="store_true", help="compile with dynamic shapes")
     p.add_argument("--stages", action="store_true", help="also time each stage of the spring substep alone")
-    p.add_argument("--layout", action="store_true",
-                   help="time one stage written for the engine's (B, N, 3) layout and for a batch-last (3, N, B) one")
     return p.parse_args()
 
 
@@ -80,59 +77,6 @@ def spring_stages(sys, bodies, ctrl, inv_body, h):
     ]
 
 
-def rotated_inertia_product(x_quat, inv_inertia_body, xd_ang):
-    """The engine's layout: ``R I^-1 R^T w`` and ``w x (R I^-1 R^T w)`` for ``x_quat (B, N, 4)``, ``w (B, N, 3)``."""
-    from torchsim import math
-
-    rot = math.quat_to_mat(x_quat)
-    v = math.matvec(math.mm(rot, inv_inertia_body, rot.transpose(-1, -2)), xd_ang)
-    return v, math.cross(xd_ang, v)
-
-
-def rotated_inertia_product_batch_last(x_quat, inv_inertia_body, xd_ang):
-    """The same with the batch innermost: ``x_quat (4, N, B)``, ``inv_inertia_body (3, 3, N, 1)``, ``w (3, N, B)``;
-    every line is an elementwise op over contiguous rows of ``B`` envs, which SIMD lanes can take side by side."""
-    w, x, y, z = x_quat.unbind(0)
-    rot = [[w * w + x * x - y * y - z * z, 2 * (x * y - w * z), 2 * (x * z + w * y)],
-           [2 * (x * y + w * z), w * w - x * x + y * y - z * z, 2 * (y * z - w * x)],
-           [2 * (x * z - w * y), 2 * (y * z + w * x), w * w - x * x - y * y + z * z]]
-    ang = xd_ang.unbind(0)
-    body = [sum(rot[k][i] * ang[k] for k in range(3)) for i in range(3)]  # R^T w
-    body = [sum(inv_inertia_body[i][k] * body[k] for k in range(3)) for i in range(3)]
-    v = [sum(rot[i][k] * body[k] for k in range(3)) for i in range(3)]
-    gyro = [ang[1] * v[2] - ang[2] * v[1], ang[2] * v[0] - ang[0] * v[2], ang[0] * v[1] - ang[1] * v[0]]
-    return torch.stack(v), torch.stack(gyro)
-
-
-def transposed_at_boundary(x_quat, inv_inertia_body, xd_ang):
-    """:func:`rotated_inertia_product_batch_last` inside a batch-first stage: inputs and outputs transposed."""
-    v, gyro = rotated_inertia_product_batch_last(x_quat.permute(2, 1, 0), inv_inertia_body.permute(1, 2, 0)[..., None],
-                                                 xd_ang.permute(2, 1, 0))
-    return v.permute(2, 1, 0), gyro.permute(2, 1, 0)
-
-
-def compare_layouts(sys, bodies, inv_body, args):
-    """Time :func:`rotated_inertia_product` in both layouts (and the batch-last one transposed at the stage's
-    boundary), scalar and SIMD code, after checking they agree."""
-    n = sys.num_bodies
-    first = (bodies.x_quat[:, :n].contiguous(), inv_body, bodies.xd_ang[:, :n].contiguous())
-    last = (first[0].permute(2, 1, 0).contiguous(), inv_body.permute(1, 2, 0)[..., None].contiguous(),
-            first[2].permute(2, 1, 0).contiguous())
-    as_f64 = [t.double() for t in first], [t.double() for t in last]  # the two sum in different orders
-    for a, b in zip(rotated_inertia_product(*as_f64[0]), rotated_inertia_product_batch_last(*as_f64[1])):
-        torch.testing.assert_close(a, b.permute(2, 1, 0))
-    variants = (("batch-first (B, N, 3)", rotated_inertia_product, first),
-                ("batch-last (3, N, B)", rotated_inertia_product_batch_last, last),
-                ("batch-last, transposed at the boundary", transposed_at_boundary, first))
-    print(f"one stage (R I^-1 R^T w and w x that), {n} bodies, batch {args.batch}, median us:")
-    for code, options in (("scalar", {"cpp.simdlen": 1}), ("SIMD", None)):
-        row = []
-        for name, fn, fn_args in variants:
-            compiled = torch.compile(fn, fullgraph=True, dynamic=args.dynamic, options=options)
-            row.append(f"{name} {timed(compiled, fn_args, 10 * args.repeats)[1] * 1e6:.0f}")
-        print(f"  {code:6s} code: " + ", ".join(row))
-
-
 def main():
     args = parse_args()
     torch.set_num_threads(args.threads)
@@ -142,6 +86,7 @@ def main():
     import torchsim
     from torchsim import pipeline, rigid
     from torchsim.kinematics import with_world
+    from torchsim.lanes import to_lanes
 
     sys = torchsim.load_mjcf(args.model, method=args.method).to(dtype=torch.float32)
     m = mujoco.MjModel.from_xml_path(args.model)
@@ -149,22 +94,19 @@ def main():
     if sys.free_qpos.numel():
         q[:, sys.free_qpos[0] + 2] -= 0.05
     state = torchsim.init(sys, q, 0.1 * torch.randn(args.batch, sys.nv))
-    ctrl = 2 * torch.rand(args.batch, sys.nu) - 1
+    ctrl = to_lanes(2 * torch.rand(args.batch, sys.nu) - 1).contiguous()
     inv_body = rigid.body_inverse_inertia(sys)
-    bodies = with_world(state.x_pos, state.x_quat, state.xd_vel, state.xd_ang)
+    bodies = with_world(*(to_lanes(x, 1) for x in state[:4]))  # the engine's lanes layout, as step makes it
     h = sys.timestep / sys.substeps
-    options = {"cpp_wrapper": not args.no_cpp_wrapper} | ({} if args.vectorize else {"cpp.simdlen": 1})
+    options = {"cpp_wrapper": not args.no_cpp_wrapper} | ({"cpp.simdlen": 1} if args.scalar else {})
 
     def compiled(fn):
         return torch.compile(fn, fullgraph=True, dynamic=args.dynamic, options=options)
 
     print(f"{pathlib.Path(args.model).name}, {args.method}, batch {args.batch}, {args.threads} thread(s), "
-          f"{'SIMD' if args.vectorize else 'scalar'} code, {'Python' if args.no_cpp_wrapper else 'C++'} wrapper, "
+          f"{'scalar' if args.scalar else 'SIMD'} code, {'Python' if args.no_cpp_wrapper else 'C++'} wrapper, "
           f"{'dynamic' if args.dynamic else 'static'} shapes, "
           f"torch {torch.__version__}")
-    if args.layout:
-        compare_layouts(sys, bodies, inv_body, args)
-        return
     substep = compiled(pipeline.SUBSTEP[args.method])
     compile_s, sec = timed(substep, (sys, bodies, ctrl, inv_body, h), args.repeats)
     print(f"substep: {sec * 1e3:.2f} ms (compile {compile_s:.0f} s)")

@@ -23,6 +23,7 @@ import torchsim
 import torchsim.envs
 from torchsim import rigid
 from torchsim.kinematics import with_world
+from torchsim.lanes import to_lanes
 
 VIEW_OPS = {"view", "_unsafe_view", "expand", "select", "slice", "unsqueeze", "squeeze", "permute", "transpose",
             "t", "as_strided", "unbind", "split", "alias", "detach", "reshape", "flatten", "unflatten"}
@@ -59,8 +60,8 @@ class CostCounter(TorchDispatchMode):
 def substep_cost(env) -> CostCounter:
     sys = env.sys
     state = env.state
-    bodies = with_world(state.x_pos[:1], state.x_quat[:1], state.xd_vel[:1], state.xd_ang[:1])
-    ctrl = torch.zeros(1, sys.nu, dtype=sys.dtype)
+    bodies = with_world(*(to_lanes(x[:1], 1) for x in state[:4]))
+    ctrl = torch.zeros(sys.nu, 1, dtype=sys.dtype)
     inv_body = rigid.body_inverse_inertia(sys)
     counter = CostCounter()
     with counter:

@@ -45,6 +45,7 @@ from torchsim import math as tmath
 from torchsim import rigid
 from torchsim.envs import ENVS, make
 from torchsim.kinematics import anchor_gap, dof_values, joint_frames, with_world
+from torchsim.lanes import components_last, from_lanes
 from torchsim.pipeline import contain_divergence
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
@@ -119,7 +120,7 @@ def bare_dof_inverse_inertia(sys: torchsim.System) -> torch.Tensor:
     explicit joint torque accelerates in maximal coordinates before the joints couple the links."""
     bodies = with_world(*torchsim.kinematics.forward(sys, sys.q0[None], torch.zeros(1, sys.nv, dtype=sys.dtype)))
     inv = rigid.inverse_inertia(sys, bodies.x_quat, rigid.body_inverse_inertia(sys))
-    return rigid.dof_inverse_mass(sys, inv, dof_values(sys, joint_frames(sys, bodies).axes))
+    return from_lanes(rigid.dof_inverse_mass(sys, inv, dof_values(sys, joint_frames(sys, bodies).axes)))
 
 
 def joint_spring_omega(sys: torchsim.System) -> torch.Tensor:
@@ -134,9 +135,9 @@ def joint_spring_omega(sys: torchsim.System) -> torch.Tensor:
 
 def mechanical_energy(sys: torchsim.System, state: torchsim.State) -> torch.Tensor:
     """Kinetic + gravitational + joint-spring energy [J] per env ``(B,)``."""
-    w_body = tmath.quat_rotate_inv(state.x_quat, state.xd_ang)
+    w_body = components_last(tmath.quat_rotate_inv)(state.x_quat, state.xd_ang)
     kinetic = 0.5 * (sys.body_mass * (state.xd_vel ** 2).sum(-1)).sum(-1) + 0.5 * (
-        w_body * tmath.matvec(sys.body_inertia, w_body)).sum((-1, -2))
+        w_body * (sys.body_inertia @ w_body[..., None])[..., 0]).sum((-1, -2))
     gravity = -(sys.body_mass * (state.x_pos * sys.gravity).sum(-1)).sum(-1)
     stretch = state.q[:, sys.dof_qpos] - sys.dof_springref
     return kinetic + gravity + 0.5 * (sys.dof_stiffness * stretch ** 2).sum(-1)

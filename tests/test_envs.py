@@ -11,6 +11,7 @@ from torchrl.envs.utils import check_env_specs
 import torchsim
 import torchsim.envs as envs
 from torchsim import actuators
+from torchsim.lanes import from_lanes, to_lanes
 
 NAMES = envs.list()
 
@@ -279,9 +280,12 @@ def test_actuator_gain_scale_keeps_servo_set_points():
     qd = torch.zeros_like(q)
     passive = -sys.dof_stiffness * (q - sys.dof_springref)
     at_target = sys.act_gear * q.index_select(1, sys.act_dof)
-    force = actuators.dof_forces(sys, q, qd, at_target) - passive
+    def dof_forces(ctrl):  # the engine's lanes layout: (D, B), (U, B)
+        return from_lanes(actuators.dof_forces(sys, to_lanes(q), to_lanes(qd), to_lanes(ctrl))) - passive
+
+    force = dof_forces(at_target)
     assert force.abs().max() < 1e-9
-    force = actuators.dof_forces(sys, q, qd, at_target + 0.01) - passive
+    force = dof_forces(at_target + 0.01)
     assert force[0].abs().min() > 0
     torch.testing.assert_close(force[1:], force[0] * torch.tensor([[0.5], [2.0]], dtype=torch.float64))
 

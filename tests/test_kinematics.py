@@ -136,11 +136,12 @@ def test_stepped_state_reinit_reproduces_poses(name, method):
     springs: full 150 N m on the ant's 0.04 kg legs stretches them); asserted 2 mm / 0.04 rad.
     """
     from torchsim.kinematics import joint_frames, with_world
+    from torchsim.lanes import to_lanes
 
     sys, state, again = _stepped(name, method)
-    frames = joint_frames(sys, with_world(state.x_pos, state.x_quat, state.xd_vel, state.xd_ang))
-    lin_res = frames.lin_err.norm(dim=-1).max().item()
-    ang_res = frames.ang_err.norm(dim=-1).max().item()
+    frames = joint_frames(sys, with_world(*(to_lanes(x, 1) for x in state[:4])))
+    lin_res = frames.lin_err.norm(dim=0).max().item()
+    ang_res = frames.ang_err.norm(dim=0).max().item()
     pos_err = (again.x_pos - state.x_pos).abs().max().item()
     quat_err = quat_dist(again.x_quat, state.x_quat).max().item()
     print(f"{name}/{method}: x_pos {pos_err:.2e} x_quat {quat_err:.2e}; joint residuals lin {lin_res:.2e} m, "

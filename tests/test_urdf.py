@@ -14,6 +14,7 @@ import torchsim
 from models import F64, REPO, quat_to_mat
 from torchsim.io_urdf import UnsupportedURDFError, urdf_to_mjcf
 from torchsim.kinematics import anchor_gap, dof_values, joint_frames, with_world
+from torchsim.lanes import from_lanes, to_lanes
 
 UR5E = REPO / "envs" / "assets" / "ur5e.urdf"
 HOME = (-np.pi / 2, -np.pi / 2, np.pi / 2, -np.pi / 2, -np.pi / 2, 0.0)
@@ -102,9 +103,9 @@ def test_tool_frame_matches_dh_table(q, pos, quat):
 def _holding_torques(sys, state):
     """Joint torques that balance gravity, from the maximal-coordinate bodies: minus the generalized gravity
     force, the virtual work sum over the bodies b below joint j of (a_j x (x_b - p_j)) . m_b g."""
-    frames = joint_frames(sys, with_world(state.x_pos, state.x_quat, state.xd_vel, state.xd_ang))
-    axes = dof_values(sys, frames.axes)  # (B, D, 3) world hinge axes
-    anchors = state.x_pos[:, sys.jnt_child] + frames.r_child  # (B, J, 3); one dof per joint on this arm
+    frames = joint_frames(sys, with_world(*(to_lanes(x, 1) for x in state[:4])))
+    axes = from_lanes(dof_values(sys, frames.axes), 1)  # (B, D, 3) world hinge axes
+    anchors = state.x_pos[:, sys.jnt_child] + from_lanes(frames.r_child, 1)  # (B, J, 3); one dof per joint on this arm
     below = torch.eye(sys.num_bodies + 1, dtype=F64)  # below[j, b]: body b is in the subtree of body j
     for c, p in reversed(list(zip(sys.jnt_child.tolist(), sys.jnt_parent.tolist()))):  # children after parents
         below[p] += below[c]

@@ -4,6 +4,10 @@ Each shape pair has a fixed number of contact points (a box on a plane tests its
 count is static and activity is a mask, never control flow. Geom ``a`` is the lower-ranked shape of a pair
 (sphere < capsule < box < plane); normals point from ``b`` towards ``a``.
 
+Tensors are in the lanes layout (``torchsim.lanes``). A group's ``P`` pairs with ``K`` points each are evaluated as
+``(*C, P, K, B)``, the point axis at ``-2`` as every entity axis inserted before the batch, and flattened to the
+group's ``P K`` contacts at the end.
+
 Approximations (exact pairs are plane-*, sphere-sphere, sphere-capsule, capsule-capsule, sphere-box):
 - capsule-box tests three spheres of the capsule's segment (both ends and the point nearest the box centre);
 - box-box tests each box's 8 corners against the other box, so edge-edge crossings are missed.
@@ -13,7 +17,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import math
+from torchsim import lanes, math
 from torchsim.kinematics import Bodies
 from torchsim.system import System
 
@@ -22,17 +26,19 @@ POINTS_PER_PAIR = {
     "sphere_plane": 1, "capsule_plane": 2, "box_plane": 8, "sphere_sphere": 1, "sphere_capsule": 1,
     "capsule_capsule": 1, "sphere_box": 1, "capsule_box": 3, "box_box": 16,
 }
-_CORNERS = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], dtype=torch.float64)
+# unit box corners (3, 1, 8, 1): components, then broadcast over pairs, the 8 corners, broadcast over the batch
+_CORNERS = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
+                        dtype=torch.float64).T[:, None, :, None]
 
 
 class Contacts(NamedTuple):
     """Contact points of all pairs, ``C`` per env.
 
     Attributes:
-        pos: (B, C, 3) world contact point (midway between the surfaces) [m].
-        normal: (B, C, 3) unit normal from body b towards body a.
-        depth: (B, C) penetration (margin - distance) [m]; the contact is active where depth > 0.
-        body_a, body_b: (C,) ext body indices.  friction: (C,) or (B, C).
+        pos: (3, C, B) world contact point (midway between the surfaces) [m].
+        normal: (3, C, B) unit normal from body b towards body a.
+        depth: (C, B) penetration (margin - distance) [m]; the contact is active where depth > 0.
+        body_a, body_b: (C,) ext body indices.  friction: (C, 1) or, per env, (C, B).
     """
 
     pos: torch.Tensor
@@ -45,7 +51,7 @@ class Contacts(NamedTuple):
 
 def _segment(pos, quat, size):
     """End points of a capsule's axis segment (local z, half-length ``size[1]``)."""
-    half = math.quat_rotate(quat, torch.stack((torch.zeros_like(size[..., 1]),) * 2 + (size[..., 1],), -1))
+    half = math.quat_rotate(quat, torch.stack((torch.zeros_like(size[1]),) * 2 + (size[1],)))
     return pos - half, pos + half
 
 
@@ -73,7 +79,7 @@ def _sphere_sphere(ca, ra, cb, rb):
     dist = math.safe_norm(d)
     normal = d / dist
     midpoint = 0.5 * ((ca - normal * ra) + (cb + normal * rb))
-    return midpoint, normal, (dist - ra - rb)[..., 0]
+    return midpoint, normal, dist - ra - rb
 
 
 def _point_box(x, r, box_pos, box_quat, half):
@@ -82,38 +88,41 @@ def _point_box(x, r, box_pos, box_quat, half):
     clamped = torch.maximum(torch.minimum(local, half), -half)
     outside_vec = local - clamped
     out_dist = math.safe_norm(outside_vec)
-    outside = (outside_vec.abs().amax(-1, keepdim=True) > 0)
+    outside = outside_vec.abs().amax(0) > 0
     # inside: leave through the nearest face
     face_gap = half - local.abs()
-    axis = torch.nn.functional.one_hot(face_gap.argmin(-1), 3).to(x.dtype)
+    axis = torch.nn.functional.one_hot(face_gap.argmin(0), 3).movedim(-1, 0).to(x.dtype)
     in_normal = axis * torch.where(local >= 0, 1.0, -1.0)
     normal_local = torch.where(outside, outside_vec / out_dist, in_normal)
-    dist = torch.where(outside, out_dist, -(face_gap * axis).sum(-1, keepdim=True)) - r
+    dist = torch.where(outside, out_dist, -(face_gap * axis).sum(0)) - r
     normal = math.quat_rotate(box_quat, normal_local)
-    return x - normal * (r + 0.5 * dist), normal, dist[..., 0]
+    return x - normal * (r + 0.5 * dist), normal, dist
+
+
+def _box_corners(pos, quat, size):
+    """World corners ``(3, P, 8, B)`` of boxes at poses ``(3, P, B)``, ``(4, P, B)`` with half sizes ``(3, P, 1)``."""
+    corners = _CORNERS.to(pos) * size.unsqueeze(-2)
+    return pos.unsqueeze(-2) + math.quat_rotate(quat.unsqueeze(-2), corners)
 
 
 def _pair_contacts(kind, pa, qa, sa, pb, qb, sb):
-    """Contacts of one shape pair for world geom poses; returns point (..., K, 3), normal (..., K, 3), distance (..., K)."""
+    """Contacts of one shape pair for world geom poses ``(3|4, P, B)`` and sizes ``(3, P, 1)``; returns point
+    ``(3, P, K, B)``, normal ``(3, P, K, B)``, distance ``(P, K, B)``."""
     if kind.endswith("_plane"):
-        normal = math.quat_rotate(qb, torch.zeros_like(pb) + pb.new_tensor([0.0, 0.0, 1.0]))
+        normal = math.quat_rotate(qb, pb.new_tensor([0.0, 0.0, 1.0]).view(3, 1, 1))
         if kind == "sphere_plane":
-            pts, radius = pa.unsqueeze(-2), sa[..., :1].unsqueeze(-2)
+            pts, radius = pa.unsqueeze(-2), sa[0].unsqueeze(-2)
         elif kind == "capsule_plane":
-            pts, radius = torch.stack(_segment(pa, qa, sa), -2), sa[..., :1].unsqueeze(-2)
-        else:  # box corners
-            pts = pa.unsqueeze(-2) + math.quat_rotate(qa.unsqueeze(-2), _CORNERS.to(pa) * sa.unsqueeze(-2))
-            radius = torch.zeros_like(pts[..., :1])
+            pts, radius = torch.stack(_segment(pa, qa, sa), -2), sa[0].unsqueeze(-2)
+        else:
+            pts, radius = _box_corners(pa, qa, sa), 0.0
         normal = normal.unsqueeze(-2).expand_as(pts)
         dist = math.dot(pts - pb.unsqueeze(-2), normal) - radius
-        return pts - normal * (radius + 0.5 * dist), normal, dist[..., 0]
+        return pts - normal * (radius + 0.5 * dist), normal, dist
     if kind == "box_box":
-        corners_a = pa.unsqueeze(-2) + math.quat_rotate(qa.unsqueeze(-2), _CORNERS.to(pa) * sa.unsqueeze(-2))
-        corners_b = pb.unsqueeze(-2) + math.quat_rotate(qb.unsqueeze(-2), _CORNERS.to(pb) * sb.unsqueeze(-2))
-        zero = torch.zeros_like(corners_a[..., :1])
-        pt_a, n_a, d_a = _point_box(corners_a, zero, pb.unsqueeze(-2), qb.unsqueeze(-2), sb.unsqueeze(-2))
-        pt_b, n_b, d_b = _point_box(corners_b, zero, pa.unsqueeze(-2), qa.unsqueeze(-2), sa.unsqueeze(-2))
-        return torch.cat((pt_a, pt_b), -2), torch.cat((n_a, -n_b), -2), torch.cat((d_a, d_b), -1)
+        pt_a, n_a, d_a = _point_box(_box_corners(pa, qa, sa), 0.0, pb.unsqueeze(-2), qb.unsqueeze(-2), sb.unsqueeze(-2))
+        pt_b, n_b, d_b = _point_box(_box_corners(pb, qb, sb), 0.0, pa.unsqueeze(-2), qa.unsqueeze(-2), sa.unsqueeze(-2))
+        return torch.cat((pt_a, pt_b), -2), torch.cat((n_a, -n_b), -2), torch.cat((d_a, d_b), -2)
     # sphere-like a (sphere, or points on a capsule's segment)
     if kind.startswith("sphere"):
         centres = pa.unsqueeze(-2)
@@ -121,45 +130,45 @@ def _pair_contacts(kind, pa, qa, sa, pb, qb, sb):
         p0, p1 = _segment(pa, qa, sa)
         q0, q1 = _segment(pb, qb, sb)
         ca, cb = _segments_closest(p0, p1, q0, q1)
-        pt, n, d = _sphere_sphere(ca, sa[..., :1], cb, sb[..., :1])
-        return pt.unsqueeze(-2), n.unsqueeze(-2), d.unsqueeze(-1)
+        pt, n, d = _sphere_sphere(ca, sa[0], cb, sb[0])
+        return pt.unsqueeze(-2), n.unsqueeze(-2), d.unsqueeze(-2)
     else:  # capsule_box
         p0, p1 = _segment(pa, qa, sa)
         centres = torch.stack((p0, p1, _closest_on_segment(p0, p1, pb)), -2)
-    ra = sa[..., :1].unsqueeze(-2).expand_as(centres[..., :1])
+    ra = sa[0].unsqueeze(-2)
     if kind.endswith("_sphere"):
-        pt, n, d = _sphere_sphere(centres, ra, pb.unsqueeze(-2), sb[..., :1].unsqueeze(-2))
-    elif kind.endswith("_capsule"):
+        return _sphere_sphere(centres, ra, pb.unsqueeze(-2), sb[0].unsqueeze(-2))
+    if kind.endswith("_capsule"):
         q0, q1 = _segment(pb, qb, sb)
         nearest = _closest_on_segment(q0.unsqueeze(-2), q1.unsqueeze(-2), centres)
-        pt, n, d = _sphere_sphere(centres, ra, nearest, sb[..., :1].unsqueeze(-2))
-    else:
-        pt, n, d = _point_box(centres, ra, pb.unsqueeze(-2), qb.unsqueeze(-2), sb.unsqueeze(-2))
-    return pt, n, d
+        return _sphere_sphere(centres, ra, nearest, sb[0].unsqueeze(-2))
+    return _point_box(centres, ra, pb.unsqueeze(-2), qb.unsqueeze(-2), sb.unsqueeze(-2))
 
 
 def contacts(sys: System, bodies: Bodies) -> Contacts:
-    """Evaluate every candidate contact point of the model at the given ext body poses."""
+    """Evaluate every candidate contact point of the model at the given ext body poses (lanes ``Bodies``)."""
+    geom_pos, geom_quat = lanes.param(sys.geom_pos, 1, 1), lanes.param(sys.geom_quat, 1, 1)
+    geom_size = lanes.param(sys.geom_size, 1, 1)
     pos, normal, depth, body_a, body_b, friction = [], [], [], [], [], []
     for group in sys.contact_groups:
         k = POINTS_PER_PAIR[group.kind]
         geom = torch.cat((group.geom_a, group.geom_b))  # both sides' world poses at once
         body = sys.geom_body[geom]
-        x, q = bodies.x_pos.index_select(1, body), bodies.x_quat.index_select(1, body)
-        pos_a, pos_b = (x + math.quat_rotate(q, sys.geom_pos[geom])).chunk(2, 1)
-        quat_a, quat_b = math.quat_mul(q, sys.geom_quat[geom]).chunk(2, 1)
-        size_a, size_b = sys.geom_size[geom].expand(x.shape[0], -1, -1).chunk(2, 1)
+        x, q = bodies.x_pos.index_select(-2, body), bodies.x_quat.index_select(-2, body)
+        pos_a, pos_b = (x + math.quat_rotate(q, geom_pos.index_select(-2, geom))).chunk(2, -2)
+        quat_a, quat_b = math.quat_mul(q, geom_quat.index_select(-2, geom)).chunk(2, -2)
+        size_a, size_b = geom_size.index_select(-2, geom).chunk(2, -2)
         pt, n, dist = _pair_contacts(group.kind, pos_a, quat_a, size_a, pos_b, quat_b, size_b)
-        pos.append(pt.flatten(1, 2))
-        normal.append(n.flatten(1, 2))
-        depth.append((group.margin[:, None] - dist).flatten(1, 2))
+        pos.append(pt.flatten(-3, -2))
+        normal.append(n.flatten(-3, -2))
+        depth.append((lanes.param(group.margin, 1).unsqueeze(-2) - dist).flatten(-3, -2))
         body_a.append(sys.geom_body[group.geom_a].repeat_interleave(k))
         body_b.append(sys.geom_body[group.geom_b].repeat_interleave(k))
-        friction.append(group.friction.repeat_interleave(k, dim=-1))
+        friction.append(lanes.param(group.friction, 1).repeat_interleave(k, dim=0))
     if not pos:
-        b = bodies.x_pos.shape[0]
-        empty = bodies.x_pos.new_zeros(b, 0, 3)
+        b = bodies.x_pos.shape[-1]
+        empty = bodies.x_pos.new_zeros(3, 0, b)
         idx = sys.geom_body.new_zeros(0)
-        return Contacts(empty, empty, bodies.x_pos.new_zeros(b, 0), idx, idx, bodies.x_pos.new_zeros(0))
-    return Contacts(torch.cat(pos, 1), torch.cat(normal, 1), torch.cat(depth, 1), torch.cat(body_a),
-                    torch.cat(body_b), torch.cat(friction, -1))
+        return Contacts(empty, empty, bodies.x_pos.new_zeros(0, b), idx, idx, bodies.x_pos.new_zeros(0, 1))
+    return Contacts(torch.cat(pos, -2), torch.cat(normal, -2), torch.cat(depth, -2), torch.cat(body_a),
+                    torch.cat(body_b), torch.cat(friction, -2))

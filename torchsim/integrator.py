@@ -1,35 +1,39 @@
-"""Semi-implicit Euler for rigid bodies: forces -> velocities (implicit gyroscopic term), velocities -> poses."""
+"""Semi-implicit Euler for rigid bodies: forces -> velocities (implicit gyroscopic term), velocities -> poses.
+
+Lanes layout (``torchsim.lanes``): ext-indexed vectors ``(3, N + 1, B)``, quaternions ``(4, N + 1, B)``.
+"""
 
 import torch
 
-from torchsim import math, rigid
+from torchsim import lanes, math, rigid
 from torchsim.kinematics import Bodies
 from torchsim.system import System
 
 
 def velocity_update(sys: System, bodies: Bodies, inv: rigid.InverseInertia, inv_inertia_body: torch.Tensor,
                     force: torch.Tensor, torque: torch.Tensor, h: float) -> Bodies:
-    """Advance velocities by ``h`` under gravity and ext-indexed ``force``/``torque (B, N + 1, 3)`` (world frame).
+    """Advance velocities by ``h`` under gravity and ext-indexed ``force``/``torque (3, N + 1, B)`` (world frame).
 
     The gyroscopic term ``w x I w`` is taken implicitly with one Newton step in the body frame (Catto's scheme),
     which keeps a freely spinning body's energy and momentum bounded at large ``h``.
     """
     n = sys.num_bodies
-    moving = (inv.mass > 0).to(force.dtype)[..., None]
-    xd_vel = bodies.xd_vel + h * (sys.gravity * moving + inv.mass[..., None] * force)
-    quat = bodies.x_quat[:, :n]
-    rate_and_torque = torch.stack((bodies.xd_ang[:, :n], torque[:, :n]), -2)  # into the body frame in one rotation
-    w_body, torque_body = math.quat_rotate_inv(quat.unsqueeze(-2), rate_and_torque).unbind(-2)
-    inertia = sys.body_inertia
+    moving = (inv.mass > 0).to(force.dtype)
+    gravity = lanes.param(sys.gravity, 0, 1)[:, None]  # (3, 1, 1 | B): one value for every body
+    xd_vel = bodies.xd_vel + h * (gravity * moving + inv.mass * force)
+    quat = bodies.x_quat[..., :n, :]
+    w_body = math.quat_rotate_inv(quat, bodies.xd_ang[..., :n, :])
+    torque_body = math.quat_rotate_inv(quat, torque[..., :n, :])
+    inertia = lanes.param(sys.body_inertia, 1, 2)
     i_w = math.matvec(inertia, w_body)
     residual = h * math.cross(w_body, i_w) - h * torque_body
     jac = inertia + h * (math.mm(math.skew(w_body), inertia) - math.skew(i_w))
     w_body = w_body - math.matvec(math.inv3(jac), residual)
-    xd_ang = torch.cat((math.quat_rotate(quat, w_body), bodies.xd_ang[:, n:]), 1)
+    xd_ang = torch.cat((math.quat_rotate(quat, w_body), bodies.xd_ang[..., n:, :]), -2)
     return bodies._replace(xd_vel=xd_vel, xd_ang=xd_ang)
 
 
 def integrate_positions(bodies: Bodies, h: float) -> Bodies:
-    """``x += h v`` and the exact exponential-map rotation of each orientation by ``h w``."""
+    """``x += h v`` and the exact exponential-map rotation of each orientation by ``h w`` (all ``(*C, N + 1, B)``)."""
     return bodies._replace(x_pos=bodies.x_pos + h * bodies.xd_vel,
                            x_quat=math.quat_integrate(bodies.x_quat, bodies.xd_ang, h))

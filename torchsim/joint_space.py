@@ -9,7 +9,7 @@ whose inertia includes the armature.
 
 import torch
 
-from torchsim import math, rigid
+from torchsim import lanes, math, rigid
 from torchsim.kinematics import Bodies, JointFrames, dof_values
 from torchsim.system import System
 
@@ -32,92 +32,96 @@ def hinge_incidence(jnt_child, jnt_parent, dof_jnt, dof_is_hinge, num_bodies: in
 
 def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, frames: JointFrames,
                      qd_ref: torch.Tensor, damping_h: torch.Tensor):
-    """Armature (a rotor per hinge dof turning at ``qd_ref (B, D)``) and implicit damping ``damping_h = h c (..., D)``
-    on all hinge dofs at once: one dense ``D x D`` solve per env.
+    """Armature (a rotor per hinge dof turning at ``qd_ref (D, B)``) and implicit damping ``damping_h = h c
+    (D, 1 | B)`` on all hinge dofs at once: one dense ``D x D`` solve per env.
 
     Dof ``i`` turns its child against its parent about ``u_i``, the row of ``G = A^-1`` for its slot (its axis for
     a single hinge), so ``A_ij = sum_b s_ib s_jb u_i^T I_b^-1 u_j`` (``s = +1`` child, ``-1`` parent) is the dofs'
     inverse inertia through the bodies; dofs sharing a body (the ant's four hips on the torso) are coupled
     exactly, as in MuJoCo's joint-space mass matrix. Only the ``K`` hinges on each body enter its term (the
     load-time table ``sys.body_hinge_dof``), so building ``A`` costs ``N K^2``, not ``N D^2``. Returns bodies and
-    every dof's rate ``(B, D)`` (slides 0).
+    every dof's rate ``(D, B)`` (slides 0).
     """
     joint = sys.dof_flat // 6
     slot = (sys.dof_flat % 6 - 3).clamp_min(0)
     child, parent = sys.jnt_child[joint], sys.jnt_parent[joint]
-    g = frames.hinge_dual
-    hinge = sys.dof_is_hinge
-    u = torch.where(hinge[:, None], g[:, joint, slot], 0.0)  # (B, D, 3)
-    n_body, n_dof = sys.num_bodies, u.shape[1]
+    hinge = lanes.param(sys.dof_is_hinge, 1)
+    # row ``slot`` of the joint's hinge_dual: moving the row axis next to the joint axis gathers both in one index
+    u = torch.where(hinge, math.transpose(frames.hinge_dual)[:, slot, joint], 0.0)  # (3, D, B)
+    n_body, n_dof, batch = sys.num_bodies, u.shape[-2], u.shape[-1]
     if n_dof == 0:
-        return bodies, u.new_zeros(u.shape[:2])
+        return bodies, u.new_zeros(u.shape[1:])
     on_body = sys.body_hinge_dof
 
-    def per_body(x):  # (B, D, ...) -> (B, N, K, ...)
-        return x.index_select(1, on_body.flatten()).unflatten(1, on_body.shape)
+    def per_body(x):  # (..., D, B) -> (..., N, K, B)
+        return x.index_select(-2, on_body.flatten()).unflatten(-2, on_body.shape)
 
-    u_body = per_body(u) * sys.body_hinge_sign[..., None]
-    w_body = math.matvec(inv.inertia[:, :n_body, None], u_body)  # (B, N, K, 3)
-    blocks = (u_body.unsqueeze(-2) * w_body.unsqueeze(-3)).sum(-1)  # (B, N, K, K)
+    u_body = per_body(u) * lanes.param(sys.body_hinge_sign, 2)
+    w_body = math.matvec(inv.inertia[:, :, :n_body, None], u_body)  # (3, N, K, B)
+    blocks = math.dot(u_body.unsqueeze(-2), w_body.unsqueeze(-3))  # (N, K, K, B)
     entry = (on_body.unsqueeze(-1) * n_dof + on_body.unsqueeze(-2)).flatten()
-    a = u.new_zeros(u.shape[0], n_dof * n_dof).index_add(1, entry, blocks.flatten(1)).view(-1, n_dof, n_dof)
-    armature = torch.where(hinge, sys.dof_armature, 0.0)
+    a = u.new_zeros(n_dof * n_dof, batch).index_add(0, entry, blocks.flatten(0, 2)).view(n_dof, n_dof, batch)
+    armature = torch.where(hinge, lanes.param(sys.dof_armature, 1), 0.0)
     inertia = armature + torch.where(hinge, damping_h, 0.0)
     mask = (inertia > 0).to(u.dtype)
     compliance = mask / inertia.clamp_min(1e-30)
-    qd_raw = (u * (bodies.xd_ang.index_select(1, child) - bodies.xd_ang.index_select(1, parent))).sum(-1)
+    qd_raw = math.dot(u, bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent))
     rhs = mask * (compliance * armature * qd_ref - qd_raw)
-    mat = mask[..., :, None] * a * mask[..., None, :] + torch.diag_embed(compliance + 1.0 - mask).expand_as(a)
+    eye = torch.eye(n_dof, dtype=u.dtype, device=u.device)[..., None]
+    mat = mask[:, None] * a * mask[None] + eye * (compliance + 1.0 - mask)
     mu = math.spd_solve(mat, rhs)
-    d_ang = (w_body * per_body(mu)[..., None]).sum(2)  # I_b^-1 sum_k s_k u_k mu_k
-    xd_ang = torch.cat((bodies.xd_ang[:, :n_body] + d_ang, bodies.xd_ang[:, n_body:]), 1)
+    d_ang = (w_body * per_body(mu)).sum(-2)  # I_b^-1 sum_k s_k u_k mu_k
+    xd_ang = torch.cat((bodies.xd_ang[..., :n_body, :] + d_ang, bodies.xd_ang[..., n_body:, :]), -2)
     return bodies._replace(xd_ang=xd_ang), qd_raw + math.matvec(a, mu)
 
 
 def slide_inertia_and_damping(sys: System, before: Bodies, after: Bodies, axes: torch.Tensor, qd: torch.Tensor,
                               inv: rigid.InverseInertia, h: float):
     """The same for slide dofs, one dof at a time: of the change ``dqd`` forces made, ``dqd / (1 + J w)`` is kept
-    (``w = 1/m_c + 1/m_p``), then damping is implicit. Returns bodies and every dof's rate ``(B, D)``."""
+    (``w = 1/m_c + 1/m_p``), then damping is implicit. ``axes (3, D, B)``, rates ``qd (D, B)``. Returns bodies and
+    every dof's rate ``(D, B)``."""
     w = rigid.dof_inverse_mass(sys, inv, axes)
     dqd = rigid.dof_rate_change(sys, axes, before, after)
-    shrink = 1.0 / (1.0 + sys.dof_armature * w)
-    target = (qd + dqd * shrink) / (1.0 + h * sys.dof_damping * w * shrink)
-    impulse = torch.where(sys.dof_is_hinge, 0.0, (target - (qd + dqd)) / w)
+    armature, damping = lanes.param(sys.dof_armature, 1), lanes.param(sys.dof_damping, 1)
+    shrink = 1.0 / (1.0 + armature * w)
+    target = (qd + dqd * shrink) / (1.0 + h * damping * w * shrink)
+    impulse = torch.where(lanes.param(sys.dof_is_hinge, 1), 0.0, (target - (qd + dqd)) / w)
     return rigid.apply_dof_impulse(sys, after, inv, axes, impulse, position=False), target
 
 
 def armature_impulse(sys: System, inv: rigid.InverseInertia, axes: torch.Tensor, deviation: torch.Tensor):
-    """Impulse ``(B, D)`` giving each dof's armature its share of a constraint's effect ``deviation`` (a rate or a
-    coordinate): the constraint moved the dof through the bodies alone; ``1 / (1 + J w)`` of it remains."""
+    """Impulse ``(D, B)`` giving each dof's armature its share of a constraint's effect ``deviation (D, B)`` (a rate
+    or a coordinate) along ``axes (3, D, B)``: the constraint moved the dof through the bodies alone; ``1 / (1 + J w)``
+    of it remains."""
     w = rigid.dof_inverse_mass(sys, inv, axes)
-    return -sys.dof_armature * deviation / (1.0 + sys.dof_armature * w)
+    armature = lanes.param(sys.dof_armature, 1)
+    return -armature * deviation / (1.0 + armature * w)
 
 
 def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,
                         h: float):
     """Armature and implicit damping on one substep's force-driven velocity change, for all dofs; ``frames``
-    measured at the substep start. Returns bodies and dof rates ``(B, D)``."""
+    measured at the substep start. Returns bodies and dof rates ``(D, B)``."""
     qd = dof_values(sys, frames.qd)
-    after, rates = hinge_rate_solve(sys, after, inv, frames, qd, h * sys.dof_damping)
+    after, rates = hinge_rate_solve(sys, after, inv, frames, qd, h * lanes.param(sys.dof_damping, 1))
     if sys.jnt_has_slides:
         after, qd_slides = slide_inertia_and_damping(sys, before, after, dof_values(sys, frames.axes), qd, inv, h)
-        rates = torch.where(sys.dof_is_hinge, rates, qd_slides)
+        rates = torch.where(lanes.param(sys.dof_is_hinge, 1), rates, qd_slides)
     return after, rates
 
 
 def armature_loaded_inertia(sys: System, inv: rigid.InverseInertia, axes: torch.Tensor) -> rigid.InverseInertia:
-    """Inverse inertias in which each child body also carries its hinges' armature ``J a a^T`` (world frame), at the
-    poses ``inv`` was built for.
+    """Inverse inertias in which each child body also carries its hinges' armature ``J a a^T`` (world frame), for
+    dof ``axes (3, D, B)`` at the poses ``inv`` was built for.
 
     Contacts use these: an impulse on a light link whose hinge has a heavy armature turns it about the hinge as
     if the rotor were attached. The rotor is relative to the parent, this is relative to the world: exact while
     the parent does not turn about the hinge axis, and in any case it only shapes how a contact impulse divides
     between rotation and translation.
     """
-    inertia = math.mm(inv.rot, sys.body_inertia, inv.rot.transpose(-1, -2))
+    inertia = math.mm(inv.rot, lanes.param(sys.body_inertia, 1, 2), math.transpose(inv.rot))
     child, _ = rigid.dof_bodies(sys)
-    hinge_armature = torch.where(sys.dof_is_hinge, sys.dof_armature, 0.0)
-    loads = hinge_armature[..., None, None] * (axes[..., :, None] * axes[..., None, :])
-    inertia = inertia.index_add(1, child, loads)
-    inv_world = torch.cat((math.inv3(inertia), torch.zeros_like(inv.inertia[:, :1])), 1)
+    hinge_armature = torch.where(lanes.param(sys.dof_is_hinge, 1), lanes.param(sys.dof_armature, 1), 0.0)
+    inertia = inertia.index_add(-2, child, hinge_armature * math.outer(axes, axes))
+    inv_world = torch.cat((math.inv3(inertia), torch.zeros_like(inv.inertia[..., :1, :])), -2)
     return rigid.InverseInertia(inv.mass, inv_world, inv.rot)

@@ -1,8 +1,12 @@
-"""``init`` and ``step``: the physics pipeline, one function per stage."""
+"""``init`` and ``step``: the physics pipeline, one function per stage.
+
+The public state is batch-first (``State``); the substeps run in the lanes layout (``torchsim.lanes``): ``step``
+converts the bodies on entry and ``finish`` converts them back.
+"""
 
 import torch
 
-from torchsim import rigid
+from torchsim import lanes, rigid
 from torchsim.kinematics import Bodies, forward, joint_frames, read_q, with_world
 from torchsim.methods import spring, xpbd
 from torchsim.state import State
@@ -26,11 +30,17 @@ def init(sys: System, q: torch.Tensor, qd: torch.Tensor) -> State:
     _check(sys, "qd", qd, sys.nv, q.shape[0])
     bodies = with_world(*forward(sys, q, qd))
     q, qd = read_q(sys, bodies, joint_frames(sys, bodies))
+    return State(*public_poses(sys, bodies), q, qd, torch.zeros(q.shape[0], dtype=torch.bool, device=q.device))
+
+
+def public_poses(sys: System, bodies: Bodies) -> list[torch.Tensor]:
+    """The moving bodies' poses and velocities, batch-first ``(B, N, 3|4)``, from lanes ``bodies``.
+
+    Contiguous, so that ``init``'s and ``step``'s results have the same strides (a batch of 1 included): a compiled
+    graph guards on strides and would otherwise compile a second time on the first step's output.
+    """
     n = sys.num_bodies
-    # Copies with the strides step's results have (a batch of 1 included): a compiled substep guards on strides
-    # and would otherwise compile a second time on the first step's output.
-    poses = [x[:, :n].clone(memory_format=torch.contiguous_format) for x in bodies]
-    return State(*poses, q, qd, torch.zeros(q.shape[0], dtype=torch.bool, device=q.device))
+    return [lanes.from_lanes(x[..., :n, :], 1).contiguous() for x in bodies]
 
 
 def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
@@ -38,7 +48,8 @@ def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
     _check(sys, "ctrl", ctrl, sys.nu, state.x_pos.shape[0])
     h = sys.timestep / sys.substeps
     inv_inertia_body = rigid.body_inverse_inertia(sys)
-    bodies = with_world(state.x_pos, state.x_quat, state.xd_vel, state.xd_ang)
+    bodies = with_world(*(lanes.to_lanes(x, 1) for x in state[:4]))
+    ctrl = lanes.to_lanes(ctrl).contiguous()
     for _ in range(sys.substeps):
         bodies = SUBSTEP[sys.method](sys, bodies, ctrl, inv_inertia_body, h)
     return SUBSTEP["finish"](sys, state, bodies)
@@ -47,10 +58,7 @@ def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
 def finish(sys: System, old: State, bodies: Bodies) -> State:
     """The state after a step's substeps: ``q, qd`` read back from the bodies, divergence contained."""
     q, qd = read_q(sys, bodies, joint_frames(sys, bodies))
-    n = sys.num_bodies
-    new = State(bodies.x_pos[:, :n], bodies.x_quat[:, :n], bodies.xd_vel[:, :n], bodies.xd_ang[:, :n], q, qd,
-                old.diverged)
-    return contain_divergence(sys, old, new)
+    return contain_divergence(sys, old, State(*public_poses(sys, bodies), q, qd, old.diverged))
 
 
 def contain_divergence(sys: System, old: State, new: State) -> State:
@@ -74,7 +82,7 @@ _EAGER_SUBSTEP = dict(SUBSTEP)
 _COMPILED_SUBSTEP: dict[tuple[str, bool, bool, bool], object] = {}
 
 
-def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool = False,
+def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool = True,
                      cpp_wrapper: bool = True) -> None:
     """Make every later ``step`` run ``torch.compile(fullgraph=True)`` substeps (``enabled=False``: eager again).
 
@@ -84,9 +92,9 @@ def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool
     substep. Each compiles on its first use; ``dynamic=True`` lets one compilation serve every batch size. The
     switch is process-wide.
 
-    ``vectorize=False`` (default) compiles CPU code without SIMD (inductor's ``cpp.simdlen=1``): inductor
-    vectorises the innermost axis, which here holds the 3 or 4 components of a vector or quaternion, so most lanes
-    are masked off; the scalar code is ~1.2x faster on the ant (``docs/benchmarks.md``). GPUs ignore the option.
+    ``vectorize=True`` (default) lets inductor emit SIMD code for CPUs: in the lanes layout its innermost axis is the
+    batch, so the lanes run across envs. ``vectorize=False`` compiles scalar code (``cpp.simdlen=1``), for
+    comparison (``docs/benchmarks.md``). GPUs ignore the option.
 
     ``cpp_wrapper=True`` (default) has inductor write the code that allocates buffers and calls the kernels in C++
     instead of Python: a substep is one kernel with ~120 buffers, and driving those from Python cost about as much

@@ -5,11 +5,14 @@ Spring stiffness is set per joint from the effective mass it acts on and the sub
 springs and heavy ones stiff springs, and the joint error scales as ``h^2``. Contacts take Brax's impulse form:
 a normal impulse removing approaching velocity plus a Baumgarte term ``depth / timeconst``, Coulomb-capped
 friction, impulses averaged over a body's active contacts.
+
+Tensors are in the lanes layout (``torchsim.lanes``): ext-indexed body vectors ``(3, N + 1, B)``, dof quantities
+``(D, B)``.
 """
 
 import torch
 
-from torchsim import integrator, joint_space, math, rigid
+from torchsim import integrator, joint_space, lanes, math, rigid
 from torchsim.actuators import dof_forces
 from torchsim.collision import contacts
 from torchsim.kinematics import Bodies, JointFrames, dof_values, joint_frames
@@ -17,89 +20,93 @@ from torchsim.system import System
 
 
 def _gains(sys: System, inv_mass: torch.Tensor, h: float):
-    """Spring and damper coefficients for an effective inverse mass ``inv_mass``."""
+    """Spring and damper coefficients for an effective inverse mass ``inv_mass`` (any shape, e.g. ``(D, B)``)."""
     return sys.joint_stiffness / (h * h * inv_mass), sys.joint_damping / (h * inv_mass)
 
 
 def _subspace_inverse(k: torch.Tensor, proj: torch.Tensor) -> torch.Tensor:
-    """``(P K P)^+`` restricted to the subspace of projector ``P`` (identity added on its complement)."""
-    return math.mm(proj, math.inv3(math.mm(proj, k, proj) + (math.eye3(k) - proj)), proj)
+    """``(P K P)^+`` restricted to the subspace of projector ``P`` (identity added on its complement); matrices
+    ``(3, 3, ...)``."""
+    return math.mm(proj, math.inv3(math.mm(proj, k, proj) + (math.eye3(k, k.ndim - 2) - proj)), proj)
 
 
 def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.InverseInertia, h: float):
-    """Ext-indexed ``(force, torque)`` of every joint's anchor spring and alignment spring.
+    """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of every joint's anchor spring and alignment spring.
 
     Gains are matrices, ``kappa / h^2 K^-1`` and ``zeta / h K^-1`` with ``K`` the joint's inverse-inertia block in
     its constrained directions: every direction is corrected by the same fraction per substep, so thin links
     (a capsule's small inertia about its axis) stay inside the explicit stability limit.
 
-    Child and parent (and the translation and rotation springs) are stacked on axis 1 so that each step of the
-    computation is one batched op.
+    Child and parent (and the translation and rotation springs) are stacked on an entity axis in front of the
+    joints, e.g. ``r (3, child/parent, J, B)``, so that each step of the computation is one batched op.
     """
     child, parent = sys.jnt_child, sys.jnt_parent
     ends = torch.cat((child, parent))
     m, i = rigid.gather(inv, ends)
-    m, i = m.unflatten(-2, (2, -1)), i.unflatten(1, (2, -1))  # (..., 2, J, 1), (B, 2, J, 3, 3): child, parent
+    m, i = m.unflatten(-2, (2, -1)), i.unflatten(-2, (2, -1))  # (2, J, 1 | B), (3, 3, 2, J, B): child, parent
     r = torch.stack((fr.r_child, fr.r_parent), 1)
     s = math.skew(r)
-    k_lin = m.sum(-3)[..., None] * math.eye3(m) - math.mm(s, i, s).sum(1)
-    gain = _subspace_inverse(torch.stack((k_lin, i.sum(1)), 1), torch.stack((fr.lin_proj, fr.ang_proj), 1))
-    vel, ang = bodies.xd_vel.index_select(1, ends), bodies.xd_ang.index_select(1, ends)
-    vel, ang = vel.unflatten(1, (2, -1)), ang.unflatten(1, (2, -1))
-    twist = torch.stack((vel + math.cross(ang, r), ang), 1)  # (B, lin/ang, child/parent, J, 3) at the anchor
+    k_lin = m.sum(-3) * math.eye3(m, 2) - math.mm(s, i, s).sum(-3)
+    gain = _subspace_inverse(torch.stack((k_lin, i.sum(-3)), 2), torch.stack((fr.lin_proj, fr.ang_proj), 2))
+    vel, ang = bodies.xd_vel.index_select(-2, ends), bodies.xd_ang.index_select(-2, ends)
+    vel, ang = vel.unflatten(-2, (2, -1)), ang.unflatten(-2, (2, -1))
+    twist = torch.stack((vel + math.cross(ang, r), ang), 1)  # (3, lin/ang, child/parent, J, B) at the anchor
     rate = twist[:, :, 0] - twist[:, :, 1]
     err = torch.stack((fr.lin_err, fr.ang_err), 1)
     kappa, zeta = sys.joint_stiffness / (h * h), sys.joint_damping / h
     force, torque = (-math.matvec(gain, kappa * err + zeta * rate)).unbind(1)
     moment = math.cross(r, force.unsqueeze(1)) + torque.unsqueeze(1)  # about each body's COM
-    wrench = torch.cat((force.unsqueeze(1).expand_as(moment), moment), -1)
-    zero = bodies.x_pos.new_zeros(bodies.x_pos.shape[:-1] + (6,))
+    wrench = torch.cat((force.unsqueeze(1).expand_as(moment), moment))  # (6, child/parent, J, B)
+    zero = bodies.x_pos.new_zeros((6,) + bodies.x_pos.shape[1:])
     total = rigid.scatter_pair(zero, child, parent, wrench[:, 0], -wrench[:, 1])
-    return total[..., :3], total[..., 3:]
+    return total[:3], total[3:]
 
 
 def limit_forces(sys: System, q: torch.Tensor, qd: torch.Tensor, w: torch.Tensor, h: float) -> torch.Tensor:
-    """Generalized spring-damper force ``(B, D)`` on every dof outside its range (``w``: dof inverse inertia)."""
-    lo, hi = sys.dof_range.unbind(-1)
+    """Generalized spring-damper force ``(D, B)`` on every dof outside its range, for coordinates and rates
+    ``q, qd (D, B)`` (``w (D, B)``: dof inverse inertia)."""
+    lo, hi = lanes.param(sys.dof_range, 2).unbind(-2)
     violation = torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0)
     k, c = _gains(sys, w, h)
-    return torch.where(sys.dof_limited & (violation != 0), -k * violation - c * qd, 0.0)
+    return torch.where(lanes.param(sys.dof_limited, 1) & (violation != 0), -k * violation - c * qd, 0.0)
 
 
 def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: float) -> Bodies:
-    """Velocity impulses stopping approach and separating at ``depth / contact_timeconst``, Coulomb-capped friction."""
+    """Velocity impulses stopping approach and separating at ``depth / contact_timeconst``, Coulomb-capped friction.
+
+    Per contact, vectors are ``(3, C, B)`` and scalars ``(C, B)``."""
     con = contacts(sys, bodies)
     a, b = con.body_a, con.body_b
-    r_a = con.pos - bodies.x_pos.index_select(1, a)
-    r_b = con.pos - bodies.x_pos.index_select(1, b)
-    v_rel = (bodies.xd_vel.index_select(1, a) + math.cross(bodies.xd_ang.index_select(1, a), r_a)
-             - bodies.xd_vel.index_select(1, b) - math.cross(bodies.xd_ang.index_select(1, b), r_b))
+    r_a = con.pos - bodies.x_pos.index_select(-2, a)
+    r_b = con.pos - bodies.x_pos.index_select(-2, b)
+    v_rel = (bodies.xd_vel.index_select(-2, a) + math.cross(bodies.xd_ang.index_select(-2, a), r_a)
+             - bodies.xd_vel.index_select(-2, b) - math.cross(bodies.xd_ang.index_select(-2, b), r_b))
     v_n = math.dot(v_rel, con.normal)
     active = (con.depth > 0).to(con.depth.dtype)
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
-    j_n = active * torch.relu(-v_n[..., 0] + con.depth / sys.contact_timeconst) / w_n
+    j_n = active * torch.relu(-v_n + con.depth / sys.contact_timeconst) / w_n
     v_t = v_rel - v_n * con.normal
     speed_t = math.safe_norm(v_t)
     tangent = v_t / speed_t
     w_t = rigid.point_inverse_mass(inv, a, r_a, tangent) + rigid.point_inverse_mass(inv, b, r_b, tangent)
-    j_t = torch.minimum(speed_t[..., 0] / w_t, con.friction * j_n)
-    scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[1])
-    p_lin = j_n[..., None] * con.normal - j_t[..., None] * tangent
-    return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin),
-                                     scale_a[..., None], scale_b[..., None])
+    j_t = torch.minimum(speed_t / w_t, con.friction * j_n)
+    scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[-2])
+    p_lin = j_n * con.normal - j_t * tangent
+    return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
 
 
 def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.InverseInertia, axes: torch.Tensor,
                      ctrl: torch.Tensor, h: float):
-    """Ext-indexed ``(force, torque)`` of the dofs' generalized forces: actuators, passive springs and limits."""
-    q, qd = dof_values(sys, fr.q) + sys.dof_ref, dof_values(sys, fr.qd)
+    """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of the dofs' generalized forces: actuators, passive springs
+    and limits, for dof ``axes (3, D, B)`` and ``ctrl (U, B)``."""
+    q, qd = dof_values(sys, fr.q) + lanes.param(sys.dof_ref, 1), dof_values(sys, fr.qd)
     tau = dof_forces(sys, q, qd, ctrl) + limit_forces(sys, q, qd, rigid.dof_inverse_mass(sys, inv, axes), h)
     return rigid.dof_wrench(sys, bodies, axes, tau)
 
 
 def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: torch.Tensor, h: float) -> Bodies:
     """Forces (actuators, limits, joint springs) -> velocities (armature, damping) -> contact impulses (on
-    armature-loaded links) -> positions."""
+    armature-loaded links) -> positions. Lanes ``bodies``, ``ctrl (U, B)``, ``inv_inertia_body (3, 3, N, 1 | B)``."""
     inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
     fr = joint_frames(sys, bodies)
     axes = dof_values(sys, fr.axes)

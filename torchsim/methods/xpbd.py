@@ -12,7 +12,7 @@ drives (the ant), the projection's bare-inertia displacements dominate and the a
 
 import torch
 
-from torchsim import integrator, joint_space, math, rigid
+from torchsim import integrator, joint_space, lanes, math, rigid
 from torchsim.actuators import dof_forces
 from torchsim.collision import contacts
 from torchsim.kinematics import Bodies, dof_values, joint_frames
@@ -24,7 +24,9 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
 
     Per joint, 3 translation rows and 3 rotation rows in the joint's hinge-slot coordinates (``G = A^-1`` maps a
     relative rotation onto the slots' axes ``A``) are solved together by 3x3 Schur complements. A rotation row is
-    hard for a constrained direction or for a dof beyond its limit, and absent for a free dof.
+    hard for a constrained direction or for a dof beyond its limit, and absent for a free dof. Bodies are lanes
+    (``(3|4, N + 1, B)``); per joint of a colour, the rows are vectors ``(3, K, B)`` and the blocks matrices
+    ``(3, 3, K, B)``.
     """
     for colour in sys.jnt_colors:
         child, parent = sys.jnt_child[colour], sys.jnt_parent[colour]
@@ -32,32 +34,32 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         m_c, i_c = rigid.gather(inv, child)
         m_p, i_p = rigid.gather(inv, parent)
         s_c, s_p = math.skew(fr.r_child), math.skew(fr.r_parent)
-        eye = math.eye3(m_c)
-        k_ll = (m_c + m_p)[..., None] * eye - math.mm(s_c, i_c, s_c) - math.mm(s_p, i_p, s_p)
+        eye = math.eye3(m_c, 2)
+        k_ll = (m_c + m_p) * eye - math.mm(s_c, i_c, s_c) - math.mm(s_p, i_p, s_p)
         k_la = -(math.mm(s_c, i_c) + math.mm(s_p, i_p))
         k_aa = i_c + i_p
 
-        # rotation rows in hinge-slot coordinates
-        slot_dof = sys.jnt_slot_dof[colour][:, 3:]
+        # rotation rows in hinge-slot coordinates: the 3 hinge slots as a vector (3, K, B)
+        slot_dof = lanes.param(sys.jnt_slot_dof[colour][:, 3:], 1, 1)
         has_dof = slot_dof >= 0
         dof = slot_dof.clamp_min(0)
-        q = fr.q[..., 3:] + torch.where(has_dof, sys.dof_ref[dof], 0.0)
+        q = fr.q[:, 3:].movedim(1, 0) + torch.where(has_dof, sys.dof_ref[dof], 0.0)
         lo, hi = sys.dof_range[dof].unbind(-1)
         violation = torch.where(has_dof & sys.dof_limited[dof], torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0), 0.0)
-        mode = sys.jnt_mode[colour]
-        hard = mode[:, :3].cumsum(-1) > 0  # a weld's slots; slots k >= n of an n-hinge joint (n = 1, 2)
+        mode = lanes.param(sys.jnt_mode[colour], 1, 1)
+        hard = mode[:3].cumsum(0) > 0  # a weld's slots; slots k >= n of an n-hinge joint (n = 1, 2)
         g = fr.hinge_dual
         error = torch.where(hard, math.matvec(g, fr.ang_err), violation)
         mask = (hard | (violation != 0)).to(q.dtype)
-        p_m = torch.diag_embed(mask)
-        gt = g.transpose(-1, -2)
+        p_m = eye * mask
+        gt = math.transpose(g)
 
         p_l = fr.lin_proj
         a = math.mm(p_l, k_ll, p_l) + (eye - p_l)  # identity on the free directions keeps the blocks invertible
         b = math.mm(p_l, k_la, gt, p_m)
-        c = math.mm(p_m, g, k_aa, gt, p_m) + torch.diag_embed(1.0 - mask)
+        c = math.mm(p_m, g, k_aa, gt, p_m) + eye * (1.0 - mask)
         a_inv = math.inv3(a)
-        bt_ainv = math.mm(b.transpose(-1, -2), a_inv)
+        bt_ainv = math.mm(math.transpose(b), a_inv)
         rhs_l, rhs_s = -fr.lin_err, -mask * error
         mu = math.matvec(math.inv3(c - math.mm(bt_ainv, b)), rhs_s - math.matvec(bt_ainv, rhs_l))
         p_lin = math.matvec(a_inv, rhs_l - math.matvec(b, mu))
@@ -67,17 +69,18 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
 
 
 def correct_slides(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pred: torch.Tensor) -> Bodies:
-    """Slide dofs: give armature its share of the projection's effect (see ``integrator.armature_impulse``),
-    then push them back inside their limits. (Hinge dofs get both inside ``project_joints``.)"""
+    """Slide dofs: give armature its share of the projection's effect (see ``joint_space.armature_impulse``),
+    then push them back inside their limits. (Hinge dofs get both inside ``project_joints``.) ``q_pred (D, B)``:
+    the dofs' coordinates predicted from their rates."""
     fr = joint_frames(sys, bodies)
     axes = dof_values(sys, fr.axes)
-    q = dof_values(sys, fr.q) + sys.dof_ref
-    slide = ~sys.dof_is_hinge
+    q = dof_values(sys, fr.q) + lanes.param(sys.dof_ref, 1)
+    slide = ~lanes.param(sys.dof_is_hinge, 1)
     w = rigid.dof_inverse_mass(sys, inv, axes)
     impulse = torch.where(slide, joint_space.armature_impulse(sys, inv, axes, q - q_pred), 0.0)
     q = q + w * impulse
-    lo, hi = sys.dof_range.unbind(-1)
-    limited = slide & sys.dof_limited
+    lo, hi = lanes.param(sys.dof_range, 2).unbind(-2)
+    limited = slide & lanes.param(sys.dof_limited, 1)
     violation = torch.where(limited, torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0), 0.0)
     return rigid.apply_dof_impulse(sys, bodies, inv, axes, impulse - violation / w, position=True)
 
@@ -85,22 +88,22 @@ def correct_slides(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pre
 def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.InverseInertia):
     """Resolve penetration along the normal, then undo tangential slip within the Coulomb cone.
 
-    Returns the corrected bodies, the contacts, their activity and their averaging weights (velocity pass).
+    Returns the corrected bodies, the contacts, and for the velocity pass their activity and averaging weights,
+    ``(C, B)`` each.
     """
     con = contacts(sys, bodies)
     a, b = con.body_a, con.body_b
-    r_a = con.pos - bodies.x_pos.index_select(1, a)
-    r_b = con.pos - bodies.x_pos.index_select(1, b)
+    r_a = con.pos - bodies.x_pos.index_select(-2, a)
+    r_b = con.pos - bodies.x_pos.index_select(-2, b)
     active = (con.depth > 0).to(con.depth.dtype)
-    scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[1])
-    scale_a, scale_b = scale_a[..., None], scale_b[..., None]
+    scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[-2])
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
     lam_n = active * con.depth / w_n
 
     def previous_point(idx, r):
         """Where the contact point, carried by body ``idx``, was at the start of the substep."""
-        local = math.quat_rotate_inv(bodies.x_quat.index_select(1, idx), r)
-        return previous.x_pos.index_select(1, idx) + math.quat_rotate(previous.x_quat.index_select(1, idx), local)
+        local = math.quat_rotate_inv(bodies.x_quat.index_select(-2, idx), r)
+        return previous.x_pos.index_select(-2, idx) + math.quat_rotate(previous.x_quat.index_select(-2, idx), local)
 
     prev_a, prev_b = previous_point(a, r_a), previous_point(b, r_b)
     slip = prev_b - prev_a  # (p - prev_a) - (p - prev_b)
@@ -108,32 +111,34 @@ def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.I
     slip_len = math.safe_norm(slip)
     tangent = slip / slip_len
     w_t = rigid.point_inverse_mass(inv, a, r_a, tangent) + rigid.point_inverse_mass(inv, b, r_b, tangent)
-    lam_t = torch.minimum(slip_len[..., 0] / w_t, con.friction * lam_n)
-    p_lin = lam_n[..., None] * con.normal - lam_t[..., None] * tangent
+    lam_t = torch.minimum(slip_len / w_t, con.friction * lam_n)
+    p_lin = lam_n * con.normal - lam_t * tangent
     bodies = rigid.apply_pair_position(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
     return bodies, con, active, scale_a, scale_b
 
 
 def stop_contacts(bodies: Bodies, inv: rigid.InverseInertia, con, active, scale_a, scale_b) -> Bodies:
     """Velocity pass: active contacts end the substep with zero normal velocity (inelastic, MuJoCo has no
-    restitution); without it, depenetration would turn into a launch speed ``depth / h``."""
+    restitution); without it, depenetration would turn into a launch speed ``depth / h``. ``active``,
+    ``scale_a``, ``scale_b``: ``(C, B)`` from :func:`project_contacts`."""
     a, b = con.body_a, con.body_b
-    r_a = con.pos - bodies.x_pos.index_select(1, a)
-    r_b = con.pos - bodies.x_pos.index_select(1, b)
-    v_rel = (bodies.xd_vel.index_select(1, a) + math.cross(bodies.xd_ang.index_select(1, a), r_a)
-             - bodies.xd_vel.index_select(1, b) - math.cross(bodies.xd_ang.index_select(1, b), r_b))
+    r_a = con.pos - bodies.x_pos.index_select(-2, a)
+    r_b = con.pos - bodies.x_pos.index_select(-2, b)
+    v_rel = (bodies.xd_vel.index_select(-2, a) + math.cross(bodies.xd_ang.index_select(-2, a), r_a)
+             - bodies.xd_vel.index_select(-2, b) - math.cross(bodies.xd_ang.index_select(-2, b), r_b))
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
-    p_lin = (-active * (v_rel * con.normal).sum(-1) / w_n)[..., None] * con.normal
+    p_lin = -active * math.dot(v_rel, con.normal) / w_n * con.normal
     return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
 
 
 def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: torch.Tensor, h: float) -> Bodies:
     """Forces -> velocities -> positions; project contacts, then joints (with limits and armature); velocities
-    from the displacement; inelastic contact velocity pass."""
+    from the displacement; inelastic contact velocity pass. All lanes: ext ``bodies``, ``ctrl (U, B)``,
+    ``inv_inertia_body (3, 3, N, 1|B)``."""
     inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
     fr = joint_frames(sys, bodies)
     axes = dof_values(sys, fr.axes)
-    q, qd = dof_values(sys, fr.q) + sys.dof_ref, dof_values(sys, fr.qd)
+    q, qd = dof_values(sys, fr.q) + lanes.param(sys.dof_ref, 1), dof_values(sys, fr.qd)
     force, torque = rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, qd, ctrl))
     after = integrator.velocity_update(sys, bodies, inv, inv_inertia_body, force, torque, h)
     after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
