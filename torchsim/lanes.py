@@ -15,7 +15,7 @@ import torch
 def to_lanes(x: torch.Tensor, comps: int = 0) -> torch.Tensor:
     """``(B, *E, *C) -> (*C, *E, B)`` for ``comps`` component axes (a view)."""
     x = x.movedim(0, -1)
-    return x.movedim(tuple(range(x.ndim - 1 - comps, x.ndim - 1)), tuple(range(comps)))
+    return x.movedim(tuple(range(x.ndim - 1 - comps, x.ndim - 1)), tuple(range(comps))) if comps else x
 
 
 def from_lanes(x: torch.Tensor, comps: int = 0) -> torch.Tensor:
@@ -30,9 +30,10 @@ def param(x: torch.Tensor, entities: int, comps: int = 0) -> torch.Tensor:
     ``entities`` and ``comps`` count the field's axes without the batch, so whether it is batched is read from its
     rank (static at trace time).
     """
-    if x.ndim == entities + comps:
-        x = x.unsqueeze(0)
-    return to_lanes(x, comps)
+    if x.ndim > entities + comps:
+        return to_lanes(x, comps)
+    x = x.unsqueeze(-1)  # the usual case, an unbatched field: one view op, which eager steps pay every substep
+    return x.movedim(tuple(range(entities, entities + comps)), tuple(range(comps))) if comps else x
 
 
 def components_last(fn, out_comps: int = 1):

@@ -83,8 +83,7 @@ def _compiling() -> bool:
 def cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Cross product of vectors ``(3, ...)``, broadcasting over the trailing axes."""
     if not _compiling():
-        shape = torch.broadcast_shapes(a.shape, b.shape)
-        return torch.linalg.cross(a.expand(shape), b.expand(shape), dim=0)
+        return torch.linalg.cross(a, b, dim=0)
     (ax, ay, az), (bx, by, bz) = a, b
     return torch.stack((ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx))
 
