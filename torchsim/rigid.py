@@ -52,6 +52,16 @@ def point_inverse_mass(inv: InverseInertia, idx: torch.Tensor, r: torch.Tensor, 
     return m + math.dot(rn, math.matvec(i, rn))
 
 
+def contact_arms(bodies: Bodies, a: torch.Tensor, b: torch.Tensor, pos: torch.Tensor):
+    """Arms ``r_a, r_b (3, C, B)`` from the COMs of bodies ``a`` and ``b (C,)`` to the points ``pos (3, C, B)``, and
+    the points' relative velocity ``v_rel (3, C, B)``, body a's minus body b's."""
+    r_a = pos - bodies.x_pos.index_select(-2, a)
+    r_b = pos - bodies.x_pos.index_select(-2, b)
+    v_rel = (bodies.xd_vel.index_select(-2, a) + math.cross(bodies.xd_ang.index_select(-2, a), r_a)
+             - bodies.xd_vel.index_select(-2, b) - math.cross(bodies.xd_ang.index_select(-2, b), r_b))
+    return r_a, r_b, v_rel
+
+
 def pair_velocity_change(inv: InverseInertia, a, b, r_a, r_b, p_lin, p_ang, scale_a=1.0, scale_b=1.0):
     """Velocity changes ``(dv, dw)`` ``(3, K, B)`` of bodies a (``+p``) and b (``-p``) for a linear impulse
     ``p_lin (3, K, B)`` at arms ``r_a``/``r_b`` plus an angular impulse ``p_ang``; ``scale`` (a float or ``(K, B)``)

@@ -77,10 +77,7 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: 
     Per contact, vectors are ``(3, C, B)`` and scalars ``(C, B)``."""
     con = contacts(sys, bodies)
     a, b = con.body_a, con.body_b
-    r_a = con.pos - bodies.x_pos.index_select(-2, a)
-    r_b = con.pos - bodies.x_pos.index_select(-2, b)
-    v_rel = (bodies.xd_vel.index_select(-2, a) + math.cross(bodies.xd_ang.index_select(-2, a), r_a)
-             - bodies.xd_vel.index_select(-2, b) - math.cross(bodies.xd_ang.index_select(-2, b), r_b))
+    r_a, r_b, v_rel = rigid.contact_arms(bodies, a, b, con.pos)
     v_n = math.dot(v_rel, con.normal)
     active = (con.depth > 0).to(con.depth.dtype)
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)

@@ -122,10 +122,7 @@ def stop_contacts(bodies: Bodies, inv: rigid.InverseInertia, con, active, scale_
     restitution); without it, depenetration would turn into a launch speed ``depth / h``. ``active``,
     ``scale_a``, ``scale_b``: ``(C, B)`` from :func:`project_contacts`."""
     a, b = con.body_a, con.body_b
-    r_a = con.pos - bodies.x_pos.index_select(-2, a)
-    r_b = con.pos - bodies.x_pos.index_select(-2, b)
-    v_rel = (bodies.xd_vel.index_select(-2, a) + math.cross(bodies.xd_ang.index_select(-2, a), r_a)
-             - bodies.xd_vel.index_select(-2, b) - math.cross(bodies.xd_ang.index_select(-2, b), r_b))
+    r_a, r_b, v_rel = rigid.contact_arms(bodies, a, b, con.pos)
     w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
     p_lin = -active * math.dot(v_rel, con.normal) / w_n * con.normal
     return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
