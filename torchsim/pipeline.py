@@ -6,7 +6,7 @@ converts the bodies on entry and ``finish`` converts them back.
 
 import torch
 
-from torchsim import lanes, rigid
+from torchsim import lanes, parts, rigid
 from torchsim.kinematics import Bodies, forward, joint_frames, read_q, with_world
 from torchsim.methods import spring, xpbd
 from torchsim.state import State
@@ -44,8 +44,19 @@ def public_poses(sys: System, bodies: Bodies) -> list[torch.Tensor]:
 
 
 def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
-    """Advance every env by ``sys.timestep`` under controls ``ctrl (B, nu)`` (``sys.substeps`` substeps)."""
+    """Advance every env by ``sys.timestep`` under controls ``ctrl (B, nu)`` (``sys.substeps`` substeps).
+
+    After ``compile_substeps(workers=n)``, a CPU batch is stepped as up to ``n`` parts on as many threads
+    (``torchsim.parts``)."""
     _check(sys, "ctrl", ctrl, sys.nu, state.x_pos.shape[0])
+    num_parts = parts.num_parts(state)
+    if num_parts > 1:
+        return parts.step_in_parts(_substeps, sys, state, ctrl, num_parts)
+    return _substeps(sys, state, ctrl)
+
+
+def _substeps(sys: System, state: State, ctrl: torch.Tensor) -> State:
+    """``step`` of one batch (or part of one) on the calling thread."""
     h = sys.timestep / sys.substeps
     inv_inertia_body = rigid.body_inverse_inertia(sys)
     bodies = with_world(*(lanes.to_lanes(x, 1) for x in state[:4]))
@@ -79,11 +90,11 @@ def contain_divergence(sys: System, old: State, new: State) -> State:
 #: divergence check; ``compile_substeps`` swaps in compiled versions.
 SUBSTEP = {"spring": spring.substep, "xpbd": xpbd.substep, "finish": finish}
 _EAGER_SUBSTEP = dict(SUBSTEP)
-_COMPILED_SUBSTEP: dict[tuple[str, bool, bool, bool], object] = {}
+_COMPILED_SUBSTEP: dict[tuple[str, bool, bool, bool, bool], object] = {}
 
 
 def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool = True,
-                     cpp_wrapper: bool = True) -> None:
+                     cpp_wrapper: bool = True, workers: int | None = None) -> None:
     """Make every later ``step`` run ``torch.compile(fullgraph=True)`` substeps (``enabled=False``: eager again).
 
     The substep is the unit worth compiling: it carries nearly all of a step's work and compiles in 1-2 minutes on
@@ -100,10 +111,18 @@ def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool
     instead of Python: a substep is one kernel with ~120 buffers, and driving those from Python cost about as much
     as the kernel itself below batch ~100 (batch 64: ~2x faster substeps; batch 4096: unchanged). It adds ~10-25 s
     to each compilation. It was measured on CPU only; no GPU was at hand to test it on CUDA.
+
+    ``workers`` (default ``torch.get_num_threads()``): CPU batches of at least ``2 * parts.MIN_PART`` envs are
+    stepped as that many parts on as many threads (``torchsim.parts``), and the kernels are compiled
+    single-threaded so that the parts do not oversubscribe the cores. ``workers=1``: one part, whose kernels use
+    ``torch.get_num_threads()`` OpenMP threads.
     """
-    options = {"cpp_wrapper": cpp_wrapper} | ({} if vectorize else {"cpp.simdlen": 1})
+    workers = torch.get_num_threads() if workers is None else workers
+    parts.WORKERS.set(workers if enabled else 1)
+    options = ({"cpp_wrapper": cpp_wrapper} | ({} if vectorize else {"cpp.simdlen": 1})
+               | ({"cpp.threads": 1} if workers > 1 else {}))
     for method, substep in _EAGER_SUBSTEP.items():
-        key = (method, dynamic, vectorize, cpp_wrapper)
+        key = (method, dynamic, vectorize, cpp_wrapper, workers > 1)
         if enabled and key not in _COMPILED_SUBSTEP:
             _COMPILED_SUBSTEP[key] = torch.compile(substep, fullgraph=True, dynamic=dynamic, options=options)
         SUBSTEP[method] = _COMPILED_SUBSTEP[key] if enabled else substep

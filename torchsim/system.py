@@ -23,6 +23,12 @@ class ContactGroup(NamedTuple):
     margin: torch.Tensor
 
 
+#: The *batchable* fields of ``System`` and their rank without a batch dimension (contact groups' friction and
+#: margin are batchable too, rank 1).
+BATCHABLE_RANK = {"body_mass": 1, "body_inertia": 3, "dof_damping": 1, "dof_armature": 1, "dof_stiffness": 1,
+                  "dof_springref": 1, "act_gear": 1, "act_gain": 1, "act_bias": 2}
+
+
 @dataclasses.dataclass(frozen=True)
 class System:
     """A rigid-body model in maximal coordinates. ``N`` bodies, ``J`` constrained joints, ``D`` hinge/slide dofs,
