@@ -30,6 +30,26 @@ def _subspace_inverse(k: torch.Tensor, proj: torch.Tensor) -> torch.Tensor:
     return math.mm(proj, math.inv3(math.mm(proj, k, proj) + (math.eye3(k, k.ndim - 2) - proj)), proj)
 
 
+def _joint_gains(sys: System, k_lin: torch.Tensor, k_ang: torch.Tensor, fr: JointFrames) -> torch.Tensor:
+    """``(P K P)^+`` of the translation and rotation blocks ``k_lin, k_ang (3, 3, J, B)`` in their constrained
+    directions ``P``, stacked ``(3, 3, lin/ang, J, B)``.
+
+    Where the model's static structure fixes ``P``, exact closed forms replace the projections (about half a
+    substep's joint-spring arithmetic on the ant): without slides ``P_lin = I``, so the gain is ``K^-1``; with
+    single hinges only, ``P_ang = I - a a^T`` for the hinge axis ``a``, and ``(P K P)^+ = K^-1 - (K^-1 a)(K^-1 a)^T
+    / (a^T K^-1 a)`` (it annihilates ``a`` and inverts ``P K P`` on the plane normal to it).
+    """
+    lin = _subspace_inverse(k_lin, fr.lin_proj) if sys.jnt_has_slides else math.inv3(k_lin)
+    if sys.jnt_kinds == (False, True, False, False, False):
+        axis = fr.axes[:, :, 3]  # slot 3, the first hinge: the projector's axis a1 (zero frame, world)
+        k_inv = math.inv3(k_ang)
+        k_inv_axis = math.matvec(k_inv, axis)
+        ang = k_inv - math.outer(k_inv_axis, k_inv_axis / math.dot(axis, k_inv_axis))
+    else:
+        ang = _subspace_inverse(k_ang, fr.ang_proj)
+    return torch.stack((lin, ang), 2)
+
+
 def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.InverseInertia, h: float):
     """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of every joint's anchor spring and alignment spring.
 
@@ -47,7 +67,7 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.Invers
     r = torch.stack((fr.r_child, fr.r_parent), 1)
     s = math.skew(r)
     k_lin = m.sum(-3) * math.eye3(m, 2) - math.mm(s, i, s).sum(-3)
-    gain = _subspace_inverse(torch.stack((k_lin, i.sum(-3)), 2), torch.stack((fr.lin_proj, fr.ang_proj), 2))
+    gain = _joint_gains(sys, k_lin, i.sum(-3), fr)
     vel, ang = bodies.xd_vel.index_select(-2, ends), bodies.xd_ang.index_select(-2, ends)
     vel, ang = vel.unflatten(-2, (2, -1)), ang.unflatten(-2, (2, -1))
     twist = torch.stack((vel + math.cross(ang, r), ang), 1)  # (3, lin/ang, child/parent, J, B) at the anchor
