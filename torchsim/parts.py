@@ -1,15 +1,21 @@
-"""A batch stepped as parts on worker threads, so that compiled substeps use every CPU core.
+"""A batch stepped as parts of a few hundred envs, spread over worker threads: how compiled CPU steps run.
 
-Inductor's CPU kernel for a substep gains nothing from OpenMP threads (its ~140 loop nests are each too short to
-share), but envs never interact, so cutting the batch into one part per core and stepping the parts on separate
-threads does scale: the compiled kernels release the GIL (``docs/benchmarks.md``, speed pass 5). Each part is an
-ordinary ``step`` of a smaller batch, so its results are those of stepping the part alone.
+Envs never interact, so a batch can be cut anywhere and each part stepped as an ordinary ``step`` of a smaller
+batch; joined, the parts give the whole-batch result exactly. Two things make that faster on CPU
+(``docs/benchmarks.md``, speed pass 5):
 
-``torchsim.compile_substeps(workers=...)`` switches this on; eager steps stay on one thread (their Python dispatch
-would hold the GIL most of the time).
+- **Part size.** Inductor's substep kernel streams ~120 intermediate buffers (~21 KB per env) through ~140 loop
+  nests. Parts of ~400-500 ant envs run 1.4-1.5x faster per env than one part of 4096 (measured on one thread).
+- **Threads.** The kernel gains nothing from OpenMP threads (its loop nests are each too short to share), but
+  parts on separate threads scale: the compiled kernels release the GIL. Each thread steps its share of the parts
+  one after another.
+
+``torchsim.compile_substeps`` switches this on (``part_size``, ``workers``); eager steps stay whole and on one
+thread (their Python dispatch would hold the GIL most of the time, and eager ops gain from large batches).
 """
 
 import dataclasses
+import math
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -18,40 +24,42 @@ import torch
 from torchsim.state import State
 from torchsim.system import BATCHABLE_RANK, System
 
-#: Smallest part worth a thread: below this, per-call overheads (guards, the GIL-held glue) outweigh the kernel.
-MIN_PART = 256
 
-
-class _Workers:
-    """The process-wide worker threads (``count - 1`` of them: the calling thread steps the first part)."""
+class _Parts:
+    """The process-wide settings: parts of at most ``size`` envs (0: off) on ``workers`` threads (``workers - 1``
+    in the pool: the calling thread steps its share too)."""
 
     def __init__(self):
-        self.count = 1
+        self.size = 0
+        self.workers = 1
         self.pool = None
         self.lock = threading.Lock()
         self.warm = set()  # (method, dtype, part sizes) stepped once, i.e. whose compilation is done
 
-    def set(self, count: int) -> None:
-        if count < 1:
-            raise ValueError(f"workers must be >= 1, got {count}")
-        if self.pool is not None and count != self.count:
+    def set(self, size: int, workers: int) -> None:
+        if size < 0 or workers < 1:
+            raise ValueError(f"part size must be >= 0 and workers >= 1, got {size} and {workers}")
+        if self.pool is not None and workers != self.workers:
             self.pool.shutdown()
             self.pool = None
-        self.count = count
+        self.size, self.workers = size, workers
         self.warm.clear()
-        if count > 1 and self.pool is None:
-            self.pool = ThreadPoolExecutor(count - 1, thread_name_prefix="torchsim-part")
+        if workers > 1 and self.pool is None:
+            self.pool = ThreadPoolExecutor(workers - 1, thread_name_prefix="torchsim-part")
 
 
-WORKERS = _Workers()
+PARTS = _Parts()
 
 
-def num_parts(state: State) -> int:
-    """How many parts ``state``'s batch is stepped in: one per worker, each at least ``MIN_PART`` envs, CPU only,
-    never while dynamo traces (a compiled ``step`` is one graph of the whole batch)."""
-    if WORKERS.count == 1 or state.x_pos.device.type != "cpu" or torch.compiler.is_compiling():
-        return 1
-    return max(1, min(WORKERS.count, state.x_pos.shape[0] // MIN_PART))
+def part_sizes(state: State) -> list[int]:
+    """Sizes of the parts ``state``'s batch is stepped in: ``ceil(B / size)`` parts of near-equal size (one size
+    when ``B`` is a multiple of the part size, so that one static compilation serves them all); one part when parts
+    are off, off the CPU, or while dynamo traces (a compiled ``step`` is one graph of the whole batch)."""
+    batch = state.x_pos.shape[0]
+    if PARTS.size == 0 or state.x_pos.device.type != "cpu" or torch.compiler.is_compiling():
+        return [batch]
+    count = max(1, math.ceil(batch / PARTS.size))
+    return [batch // count + (k < batch % count) for k in range(count)]
 
 
 def system_part(sys: System, batch: int, start: int, stop: int) -> System:
@@ -72,19 +80,26 @@ def system_part(sys: System, batch: int, start: int, stop: int) -> System:
     return dataclasses.replace(sys, contact_groups=groups, **changes)
 
 
-def step_in_parts(step, sys: System, state: State, ctrl: torch.Tensor, parts: int) -> State:
-    """``step(sys, state, ctrl)`` on ``parts`` slices of the batch at once, one per thread, joined into one State."""
+def step_in_parts(step, sys: System, state: State, ctrl: torch.Tensor, sizes: list[int]) -> State:
+    """``step(sys, state, ctrl)`` on consecutive slices of the batch of ``sizes``, joined into one State; each
+    worker thread steps a contiguous share of the parts."""
     batch = state.x_pos.shape[0]
-    bounds = torch.linspace(0, batch, parts + 1).round().long().tolist()
+    bounds = [0]
+    for size in sizes:
+        bounds.append(bounds[-1] + size)
     jobs = [(system_part(sys, batch, a, b), State(*(x[a:b] for x in state)), ctrl[a:b])
             for a, b in zip(bounds[:-1], bounds[1:])]
-    key = (sys.method, sys.dtype, tuple(b - a for a, b in zip(bounds[:-1], bounds[1:])))
-    with WORKERS.lock:
-        first_run = key not in WORKERS.warm
-        WORKERS.warm.add(key)
-    if first_run:  # compile in this thread, before the parts run concurrently
-        results = [step(*job) for job in jobs]
-    else:
-        futures = [WORKERS.pool.submit(step, *job) for job in jobs[1:]]
-        results = [step(*jobs[0])] + [f.result() for f in futures]
+    key = (sys.method, sys.dtype, tuple(sorted(set(sizes))))
+    with PARTS.lock:
+        first_run = key not in PARTS.warm
+        PARTS.warm.add(key)
+    threads = 1 if first_run else min(PARTS.workers, len(jobs))  # first run: compile on this thread alone
+    cuts = [len(jobs) * k // threads for k in range(threads + 1)]
+    shares = [jobs[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
+
+    def run(share):
+        return [step(*job) for job in share]
+
+    futures = [PARTS.pool.submit(run, share) for share in shares[1:]]
+    results = run(shares[0]) + [r for f in futures for r in f.result()]
     return State(*(torch.cat(fields) for fields in zip(*results)))

@@ -46,12 +46,12 @@ def public_poses(sys: System, bodies: Bodies) -> list[torch.Tensor]:
 def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
     """Advance every env by ``sys.timestep`` under controls ``ctrl (B, nu)`` (``sys.substeps`` substeps).
 
-    After ``compile_substeps(workers=n)``, a CPU batch is stepped as up to ``n`` parts on as many threads
-    (``torchsim.parts``)."""
+    After ``compile_substeps()``, a CPU batch is stepped as parts of a few hundred envs on worker threads
+    (``torchsim.parts``), with the same results."""
     _check(sys, "ctrl", ctrl, sys.nu, state.x_pos.shape[0])
-    num_parts = parts.num_parts(state)
-    if num_parts > 1:
-        return parts.step_in_parts(_substeps, sys, state, ctrl, num_parts)
+    sizes = parts.part_sizes(state)
+    if len(sizes) > 1:
+        return parts.step_in_parts(_substeps, sys, state, ctrl, sizes)
     return _substeps(sys, state, ctrl)
 
 
@@ -93,15 +93,25 @@ _EAGER_SUBSTEP = dict(SUBSTEP)
 _COMPILED_SUBSTEP: dict[tuple[str, bool, bool, bool, bool], object] = {}
 
 
-def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool = True,
-                     cpp_wrapper: bool = True, workers: int | None = None) -> None:
+def compile_substeps(enabled: bool = True, dynamic: bool = False, vectorize: bool = True,
+                     cpp_wrapper: bool = True, part_size: int = 512, workers: int | None = None) -> None:
     """Make every later ``step`` run ``torch.compile(fullgraph=True)`` substeps (``enabled=False``: eager again).
 
     The substep is the unit worth compiling: it carries nearly all of a step's work and compiles in 1-2 minutes on
     CPU, while the whole step (``substeps`` copies unrolled) takes far longer. The step's end (reading ``q, qd``
     back and the divergence check) is compiled too: run eagerly at batch 4096 it costs about one compiled
-    substep. Each compiles on its first use; ``dynamic=True`` lets one compilation serve every batch size. The
-    switch is process-wide.
+    substep. Each compiles on its first use. The switch is process-wide.
+
+    ``part_size`` (default 512; 0: off) and ``workers`` (default ``torch.get_num_threads()``): on CPU a batch is
+    stepped as ``ceil(B / part_size)`` parts of near-equal size, spread over ``workers`` threads
+    (``torchsim.parts``; same results). Parts of a few hundred envs run faster per env than large batches, and
+    threads are how the step uses more than one core: the kernels are compiled single-threaded when
+    ``workers > 1``, since their OpenMP loops do not scale (``docs/benchmarks.md``, speed pass 5).
+
+    ``dynamic=False`` (default) compiles static shapes: one graph per part size. Every batch that is a multiple of
+    ``part_size`` uses parts of exactly that size, so they share one compilation; other sizes add one (or two)
+    each, and dynamo falls back to eager code for a function after 8 (``torch._dynamo.config.recompile_limit``).
+    ``dynamic=True`` serves every size with one graph, but its code runs 1.5x slower on CPU.
 
     ``vectorize=True`` (default) lets inductor emit SIMD code for CPUs: in the lanes layout its innermost axis is the
     batch, so the lanes run across envs. ``vectorize=False`` compiles scalar code (``cpp.simdlen=1``), for
@@ -111,14 +121,9 @@ def compile_substeps(enabled: bool = True, dynamic: bool = True, vectorize: bool
     instead of Python: a substep is one kernel with ~120 buffers, and driving those from Python cost about as much
     as the kernel itself below batch ~100 (batch 64: ~2x faster substeps; batch 4096: unchanged). It adds ~10-25 s
     to each compilation. It was measured on CPU only; no GPU was at hand to test it on CUDA.
-
-    ``workers`` (default ``torch.get_num_threads()``): CPU batches of at least ``2 * parts.MIN_PART`` envs are
-    stepped as that many parts on as many threads (``torchsim.parts``), and the kernels are compiled
-    single-threaded so that the parts do not oversubscribe the cores. ``workers=1``: one part, whose kernels use
-    ``torch.get_num_threads()`` OpenMP threads.
     """
     workers = torch.get_num_threads() if workers is None else workers
-    parts.WORKERS.set(workers if enabled else 1)
+    parts.PARTS.set(part_size if enabled else 0, workers if enabled else 1)
     options = ({"cpp_wrapper": cpp_wrapper} | ({} if vectorize else {"cpp.simdlen": 1})
                | ({"cpp.threads": 1} if workers > 1 else {}))
     for method, substep in _EAGER_SUBSTEP.items():
