@@ -9,6 +9,12 @@ velocities, random controls, fixed seed; the timed substeps continue from there.
     python scripts/profile_substep.py --scalar --dynamic           # scalar code (cpp.simdlen=1), dynamic shapes
     python scripts/profile_substep.py --batch 64 --no-cpp-wrapper  # inductor's Python wrapper (default: C++)
     python scripts/profile_substep.py --stages                     # per-stage table (spring only)
+    python scripts/profile_substep.py --part-sizes 4096 512 256    # the batch as parts of these sizes
+
+``--part-sizes``: the batch cut into parts of each size (whole parts only), each part's substep compiled for its
+size (static shapes), and a step's substeps run on one part after another on one thread, as ``torchsim.parts``
+does; reports the time per env and substep, interleaving the sizes over the repeats so that machine noise hits
+them alike.
 """
 
 import argparse
@@ -32,6 +38,7 @@ def parse_args():
     p.add_argument("--no-cpp-wrapper", action="store_true", help="inductor's Python wrapper around the kernels")
     p.add_argument("--dynamic", action="store_true", help="compile with dynamic shapes")
     p.add_argument("--stages", action="store_true", help="also time each stage of the spring substep alone")
+    p.add_argument("--part-sizes", nargs="+", type=int, default=[], help="also time the batch cut into parts")
     return p.parse_args()
 
 
@@ -110,12 +117,37 @@ def main():
     substep = compiled(pipeline.SUBSTEP[args.method])
     compile_s, sec = timed(substep, (sys, bodies, ctrl, inv_body, h), args.repeats)
     print(f"substep: {sec * 1e3:.2f} ms (compile {compile_s:.0f} s)")
+    if args.part_sizes:
+        per_env = time_part_sizes(substep, sys, bodies, ctrl, inv_body, h, args.part_sizes, args.repeats)
+        for p, us in per_env.items():
+            print(f"  parts of {p:5d}: {us:.2f} us per env and substep "
+                  f"({1e6 / us / sys.substeps:,.0f} steps/s on this thread, substeps only)")
     if args.stages:
         if args.method != "spring":
             raise SystemExit("--stages times the spring substep's stages; use --method spring")
         for name, fn, fn_args in spring_stages(sys, bodies, ctrl, inv_body, h):
             compile_s, sec = timed(compiled(fn), fn_args, args.repeats)
             print(f"  {name:26s} {sec * 1e3:7.2f} ms (compile {compile_s:.0f} s)")
+
+
+def time_part_sizes(substep, sys, bodies, ctrl, inv_body, h, sizes, repeats):
+    """Microseconds per env and substep with the batch cut into whole parts of each of ``sizes``."""
+    from torchsim.kinematics import Bodies
+
+    batch = ctrl.shape[-1]
+    jobs = {p: [(Bodies(*(x[..., a:a + p].contiguous() for x in bodies)), ctrl[..., a:a + p].contiguous())
+                for a in range(0, batch - p + 1, p)] for p in sizes}
+    times = {p: [] for p in sizes}
+    for p in sizes:
+        substep(sys, jobs[p][0][0], jobs[p][0][1], inv_body, h)  # compile this size
+    for _ in range(repeats):
+        for p in sizes:
+            start = time.perf_counter()
+            for part_bodies, part_ctrl in jobs[p]:  # a step's substeps on each part, as a step in parts runs them
+                for _ in range(sys.substeps):
+                    part_bodies = substep(sys, part_bodies, part_ctrl, inv_body, h)
+            times[p].append((time.perf_counter() - start) / (p * len(jobs[p]) * sys.substeps))
+    return {p: statistics.median(t) * 1e6 for p, t in times.items()}
 
 
 if __name__ == "__main__":
