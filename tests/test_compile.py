@@ -70,13 +70,16 @@ def test_compiled_parts_on_threads_match_eager(method="spring"):
     for _ in range(5):
         eager.append(torchsim.step(sys, eager[-1], ctrl))
     torchsim.compile_substeps(part_size=2, workers=2)
+    graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
     try:
         assert parts.part_sizes(state) == [2, 2, 2, 2]
         compiled = [state]
-        for _ in range(5):  # the first step compiles (parts one after another), the others run on two threads
-            compiled.append(torchsim.step(sys, compiled[-1], ctrl))
+        with torch.no_grad():  # as collectors step envs
+            for _ in range(5):  # the first step compiles (parts one after another), the others run on two threads
+                compiled.append(torchsim.step(sys, compiled[-1], ctrl))
     finally:
         torchsim.compile_substeps(False)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs == 2  # substep, finish: no recompiles
     worst = max((a - b).abs().max().item() for e, c in zip(eager, compiled) for a, b in zip(e[:6], c[:6]))
     print(f"{method}: max |eager - compiled in parts| over 5 steps {worst:.2e}")
     assert worst < 1e-4  # float32 rounding, grown over 5 steps (one step: 1e-5, test above)

@@ -76,3 +76,18 @@ def test_batched_field_of_another_batch_size_is_rejected():
     sys, state, _ = _randomised_ant()
     with pytest.raises(ValueError, match="leading batch dimension of 100"):
         parts.system_part(sys, 100, 0, 50)
+
+
+def test_workers_step_in_the_callers_grad_mode(parts_off_after):
+    """Grad mode is per thread, and the workers step in the caller's: with grad enabled, the envs stepped on the
+    worker thread are differentiable in their own per-env masses (and only theirs); under ``no_grad`` the joined
+    state records no graph."""
+    sys, state, ctrl = _randomised_ant()
+    sys = sys.replace(body_mass=sys.body_mass.clone().requires_grad_())
+    parts.PARTS.set(PART, 2)
+    torchsim.step(sys, state, ctrl[0])  # the first step runs its parts on this thread alone
+    with torch.no_grad():
+        assert not torchsim.step(sys, state, ctrl[0]).x_pos.requires_grad
+    moved = torchsim.step(sys, state, ctrl[0]).x_pos
+    (mass_grad,) = torch.autograd.grad(moved[-PART:, 0, 2].sum(), sys.body_mass)  # envs of the worker's parts
+    assert mass_grad[-PART:].abs().sum() > 0 and mass_grad[:BATCH - PART].abs().sum() == 0

@@ -97,8 +97,11 @@ def step_in_parts(step, sys: System, state: State, ctrl: torch.Tensor, sizes: li
     cuts = [len(jobs) * k // threads for k in range(threads + 1)]
     shares = [jobs[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
 
-    def run(share):
-        return [step(*job) for job in share]
+    grad, inference = torch.is_grad_enabled(), torch.is_inference_mode_enabled()
+
+    def run(share):  # grad and inference mode are per thread: the workers step in the caller's
+        with torch.inference_mode(inference), torch.set_grad_enabled(grad):
+            return [step(*job) for job in share]
 
     futures = [PARTS.pool.submit(run, share) for share in shares[1:]]
     results = run(shares[0]) + [r for f in futures for r in f.result()]
