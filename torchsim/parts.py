@@ -15,6 +15,7 @@ thread (their Python dispatch would hold the GIL most of the time, and eager ops
 """
 
 import dataclasses
+import itertools
 import math
 import threading
 from concurrent.futures import ThreadPoolExecutor
@@ -84,9 +85,7 @@ def step_in_parts(step, sys: System, state: State, ctrl: torch.Tensor, sizes: li
     """``step(sys, state, ctrl)`` on consecutive slices of the batch of ``sizes``, joined into one State; each
     worker thread steps a contiguous share of the parts."""
     batch = state.x_pos.shape[0]
-    bounds = [0]
-    for size in sizes:
-        bounds.append(bounds[-1] + size)
+    bounds = [0, *itertools.accumulate(sizes)]
     jobs = [(system_part(sys, batch, a, b), State(*(x[a:b] for x in state)), ctrl[a:b])
             for a, b in zip(bounds[:-1], bounds[1:])]
     key = (sys.method, sys.dtype, tuple(sorted(set(sizes))))
