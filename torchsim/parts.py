@@ -5,7 +5,8 @@ batch; joined, the parts give the whole-batch result exactly. Two things make th
 (``docs/benchmarks.md``, speed pass 5):
 
 - **Part size.** Inductor's substep kernel streams ~120 intermediate buffers (~21 KB per env) through ~140 loop
-  nests. Parts of ~400-500 ant envs run 1.4-1.5x faster per env than one part of 4096 (measured on one thread).
+  nests. Parts of a few hundred ant envs ran 1.1-1.5x faster per env than one part of 4096 on one thread (the
+  gain varied between runs), and 1.1-1.25x faster than halves of 2048 on two.
 - **Threads.** The kernel gains nothing from OpenMP threads (its loop nests are each too short to share), but
   parts on separate threads scale: the compiled kernels release the GIL. Each thread steps its share of the parts
   one after another.

@@ -111,7 +111,7 @@ def compile_substeps(enabled: bool = True, dynamic: bool = False, vectorize: boo
     ``dynamic=False`` (default) compiles static shapes: one graph per part size. Every batch that is a multiple of
     ``part_size`` uses parts of exactly that size, so they share one compilation; other sizes add one (or two)
     each, and dynamo falls back to eager code for a function after 8 (``torch._dynamo.config.recompile_limit``).
-    ``dynamic=True`` serves every size with one graph, but its code runs 1.5x slower on CPU.
+    ``dynamic=True`` serves every size with one graph, but its code ran 1.5-2x slower on CPU.
 
     ``vectorize=True`` (default) lets inductor emit SIMD code for CPUs: in the lanes layout its innermost axis is the
     batch, so the lanes run across envs. ``vectorize=False`` compiles scalar code (``cpp.simdlen=1``), for
