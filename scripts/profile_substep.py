@@ -10,17 +10,26 @@ velocities, random controls, fixed seed; the timed substeps continue from there.
     python scripts/profile_substep.py --batch 64 --no-cpp-wrapper  # inductor's Python wrapper (default: C++)
     python scripts/profile_substep.py --stages                     # per-stage table (spring only)
     python scripts/profile_substep.py --part-sizes 4096 512 256    # the batch as parts of these sizes
+    python scripts/profile_substep.py --count-ops                  # arithmetic per env and substep, by stage
 
 ``--part-sizes``: the batch cut into parts of each size (whole parts only), each part's substep compiled for its
 size (static shapes), and a step's substeps run on one part after another on one thread, as ``torchsim.parts``
 does; reports the time per env and substep, interleaving the sizes over the repeats so that machine noise hits
 them alike.
+
+``--count-ops``: the element-wise arithmetic of one substep per env, in the code that ``torch.compile`` traces
+(``torchsim.math``'s small-matrix helpers unrolled into elementwise ops), by stage (the function the substep
+calls), and the compiled substep's time per element op. An op counts once per output element; a reduction
+(``sum``, ``amax``) once per input element. Views, copies, gathers and concatenations are not counted.
 """
 
 import argparse
+import collections
 import pathlib
 import statistics
 import time
+import traceback
+from unittest import mock
 
 import torch
 
@@ -39,6 +48,7 @@ def parse_args():
     p.add_argument("--dynamic", action="store_true", help="compile with dynamic shapes")
     p.add_argument("--stages", action="store_true", help="also time each stage of the spring substep alone")
     p.add_argument("--part-sizes", nargs="+", type=int, default=[], help="also time the batch cut into parts")
+    p.add_argument("--count-ops", action="store_true", help="count the substep's arithmetic per env, by stage")
     return p.parse_args()
 
 
@@ -122,12 +132,50 @@ def main():
         for p, us in per_env.items():
             print(f"  parts of {p:5d}: {us:.2f} us per env and substep "
                   f"({1e6 / us / sys.substeps:,.0f} steps/s on this thread, substeps only)")
+    if args.count_ops:
+        per_stage = count_ops(pipeline.SUBSTEP[args.method], (sys, bodies, ctrl, inv_body, h))
+        total = sum(per_stage.values())
+        print(f"arithmetic: {total:,.0f} element ops per env and substep; the compiled substep took "
+              f"{sec / (total * args.batch) * 1e9:.3f} ns per element op")
+        for stage, ops in per_stage.most_common():
+            print(f"  {stage:26s} {ops:8,.0f}")
     if args.stages:
         if args.method != "spring":
             raise SystemExit("--stages times the spring substep's stages; use --method spring")
         for name, fn, fn_args in spring_stages(sys, bodies, ctrl, inv_body, h):
             compile_s, sec = timed(compiled(fn), fn_args, args.repeats)
             print(f"  {name:26s} {sec * 1e3:7.2f} ms (compile {compile_s:.0f} s)")
+
+
+_ARITHMETIC = {
+    "abs", "add", "asin", "atan2", "bitwise_and", "bitwise_not", "bitwise_or", "clamp", "clamp_max", "clamp_min",
+    "cos", "div", "eq", "exp", "ge", "gt", "index_add", "le", "logical_and", "logical_not", "logical_or", "lt",
+    "maximum", "minimum", "mul", "ne", "neg", "reciprocal", "relu", "rsqrt", "rsub", "sign", "sin", "sqrt", "sub",
+    "where"}
+_REDUCTIONS = {"amax", "amin", "mean", "sum"}
+
+
+def count_ops(substep, args) -> collections.Counter:
+    """Element ops per env of ``substep(*args)``, by the ``torchsim`` function the substep called them from."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    batch = args[2].shape[-1]
+    per_stage = collections.Counter()
+
+    class Count(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, op_args=(), kwargs=None):
+            out = func(*op_args, **(kwargs or {}))
+            name = func.__name__.split(".")[0]
+            if name in _ARITHMETIC or name in _REDUCTIONS:
+                counted = op_args[0] if name in _REDUCTIONS else out
+                frames = [f for f in traceback.extract_stack() if "/torchsim/" in f.filename]
+                stage = frames[1].name if len(frames) > 1 else frames[0].name
+                per_stage[stage] += counted.numel() / batch
+            return out
+
+    with mock.patch("torchsim.math._compiling", return_value=True), Count():  # the paths torch.compile traces
+        substep(*args)
+    return per_stage
 
 
 def time_part_sizes(substep, sys, bodies, ctrl, inv_body, h, sizes, repeats):

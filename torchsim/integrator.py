@@ -27,7 +27,7 @@ def velocity_update(sys: System, bodies: Bodies, inv: rigid.InverseInertia, inv_
     inertia = lanes.param(sys.body_inertia, 1, 2)
     i_w = math.matvec(inertia, w_body)
     residual = h * math.cross(w_body, i_w) - h * torque_body
-    jac = inertia + h * (math.mm(math.skew(w_body), inertia) - math.skew(i_w))
+    jac = inertia + h * (math.skew_mm(w_body, inertia) - math.skew(i_w))
     w_body = w_body - math.matvec(math.inv3(jac), residual)
     xd_ang = torch.cat((math.quat_rotate(quat, w_body), bodies.xd_ang[..., n:, :]), -2)
     return bodies._replace(xd_vel=xd_vel, xd_ang=xd_ang)

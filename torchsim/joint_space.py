@@ -118,10 +118,19 @@ def armature_loaded_inertia(sys: System, inv: rigid.InverseInertia, axes: torch.
     if the rotor were attached. The rotor is relative to the parent, this is relative to the world: exact while
     the parent does not turn about the hinge axis, and in any case it only shapes how a contact impulse divides
     between rotation and translation.
+
+    Without 2- or 3-hinge joints no body is the child of more than one hinge, so each child's inverse takes one
+    rank-1 (Sherman-Morrison) update, ``W - J (W a)(W a)^T / (1 + J a^T W a)`` from ``W = inv.inertia``;
+    otherwise the loaded inertias are built and inverted.
     """
-    inertia = math.mm(inv.rot, lanes.param(sys.body_inertia, 1, 2), math.transpose(inv.rot))
     child, _ = rigid.dof_bodies(sys)
     hinge_armature = torch.where(lanes.param(sys.dof_is_hinge, 1), lanes.param(sys.dof_armature, 1), 0.0)
+    _, _, two, three, _ = sys.jnt_kinds
+    if not (two or three):
+        w_axis = math.matvec(inv.inertia.index_select(-2, child), axes)
+        update = hinge_armature / (1.0 + hinge_armature * math.dot(axes, w_axis)) * math.outer(w_axis, w_axis)
+        return inv._replace(inertia=inv.inertia.index_add(-2, child, -update))
+    inertia = math.mm(inv.rot, lanes.param(sys.body_inertia, 1, 2), math.transpose(inv.rot))
     inertia = inertia.index_add(-2, child, hinge_armature * math.outer(axes, axes))
     inv_world = torch.cat((math.inv3(inertia), torch.zeros_like(inv.inertia[..., :1, :])), -2)
     return rigid.InverseInertia(inv.mass, inv_world, inv.rot)

@@ -102,7 +102,6 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     axes = const(sys.jnt_axes, 2, 1)  # (3, J, 3, 1): a1..a3 along axis -2
     a1, a2, a3 = axes.unbind(-2)
     axes0 = math.quat_rotate(quat0.unsqueeze(-2), axes)  # (3, J, 3, B): a1..a3 in the zero frame, world
-    axes_c = math.quat_rotate(qc.unsqueeze(-2), axes)  # a1..a3 turning with the child, world
     eye = math.eye3(xp, 2)
     zero3 = torch.zeros_like(delta)
 
@@ -113,13 +112,14 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
         lin_err = math.matvec(lin_proj, delta)
     else:
         lin_proj, lin_err = eye.expand((3,) + delta.shape), delta
-    a1_w, a2_c = axes0[:, :, 0], axes_c[:, :, 1]
+    a1_w = axes0[:, :, 0]
+    a2_c = math.quat_rotate(qc, a2) if two else None  # a2 turning with the child, world
     ang_err, ang_proj = zero3, torch.zeros_like(lin_proj)
     if weld:
         ang_err = ang_err + mode[:, 0] * math.quat_to_rot_vec(math.quat_mul(qc, math.quat_conj(quat0)))
         ang_proj = ang_proj + mode[:, 0] * eye
     if one:
-        ang_err = ang_err + mode[:, 1] * math.cross(a1_w, axes_c[:, :, 0])
+        ang_err = ang_err + mode[:, 1] * math.cross(a1_w, math.quat_rotate(qc, a1))
         ang_proj = ang_proj + mode[:, 1] * (eye - math.outer(a1_w, a1_w))
     n12 = math.normalize(math.cross(a1_w, a2_c)) if two else zero3
     if two:
@@ -150,12 +150,14 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
         q1 = q1 + m3 * math.angle_about(a1, _rotate_about(a2, a3, mid), r_a3)
         q2 = q2 + m3 * mid
         q3 = m3 * -math.angle_about(a3, _rotate_about(a2, a1, -mid), rt_a1)
-        a3_c = axes_c[:, :, 2]
+        a3_c = math.quat_rotate(qc, a3)
         col2 = col2 + m3 * handed * math.normalize(math.cross(a3_c, a1_w))
         col3 = col3 + m3 * a3_c
     if two or three:
         hinge_axes = torch.stack((a1_w, col2, col3), -2)
-    hinge_dual = math.inv3(hinge_axes.movedim(-2, 1))  # the inverse of the matrix with the axes as columns
+        hinge_dual = math.inv3(hinge_axes.movedim(-2, 1))  # the inverse of the matrix with the axes as columns
+    else:  # the zero frame's axes are orthonormal (``System.jnt_axes``): that matrix's inverse is its transpose
+        hinge_dual = hinge_axes.movedim(-2, 0)
     qd_hinge = math.matvec(hinge_dual, ang_rel_w)
 
     # slides: the anchor offset in the zero frame, mapped onto the slide axes

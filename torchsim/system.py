@@ -47,6 +47,7 @@ class System:
         jnt_anchor_parent: (J, 3) anchor at q = 0 from the parent COM, parent frame (world frame for the world).
         jnt_quat0: (J, 4) child frame in the parent frame at q = 0.
         jnt_axes: (J, 3, 3) hinge axes a1..a3 (child frame); unused rows hold padding axes completing a basis.
+            The rows are orthonormal (the loader requires a joint's hinges to be mutually orthogonal).
         jnt_mode: (J, 5) one-hot angular mode: [weld, 1 hinge, 2 hinges, 3 hinges, ball].
         jnt_a2_sign: (J,) handedness a1 . (a2 x a3) of 3-hinge joints (1 otherwise).
         jnt_slide_axes: (J, 3, 3) slide axes (rows, zero frame; unused rows zero).

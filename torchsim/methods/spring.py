@@ -65,8 +65,7 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.Invers
     m, i = rigid.gather(inv, ends)
     m, i = m.unflatten(-2, (2, -1)), i.unflatten(-2, (2, -1))  # (2, J, 1 | B), (3, 3, 2, J, B): child, parent
     r = torch.stack((fr.r_child, fr.r_parent), 1)
-    s = math.skew(r)
-    k_lin = m.sum(-3) * math.eye3(m, 2) - math.mm(s, i, s).sum(-3)
+    k_lin = m.sum(-3) * math.eye3(m, 2) - math.skew_sandwich(r, i).sum(-3)
     gain = _joint_gains(sys, k_lin, i.sum(-3), fr)
     vel, ang = bodies.xd_vel.index_select(-2, ends), bodies.xd_ang.index_select(-2, ends)
     vel, ang = vel.unflatten(-2, (2, -1)), ang.unflatten(-2, (2, -1))

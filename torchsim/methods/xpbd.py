@@ -33,10 +33,10 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         fr = joint_frames(sys, bodies, colour)
         m_c, i_c = rigid.gather(inv, child)
         m_p, i_p = rigid.gather(inv, parent)
-        s_c, s_p = math.skew(fr.r_child), math.skew(fr.r_parent)
+        r_c, r_p = fr.r_child, fr.r_parent
         eye = math.eye3(m_c, 2)
-        k_ll = (m_c + m_p) * eye - math.mm(s_c, i_c, s_c) - math.mm(s_p, i_p, s_p)
-        k_la = -(math.mm(s_c, i_c) + math.mm(s_p, i_p))
+        k_ll = (m_c + m_p) * eye - math.skew_sandwich(r_c, i_c) - math.skew_sandwich(r_p, i_p)
+        k_la = -(math.skew_mm(r_c, i_c) + math.skew_mm(r_p, i_p))
         k_aa = i_c + i_p
 
         # rotation rows in hinge-slot coordinates: the 3 hinge slots as a vector (3, K, B)
@@ -50,14 +50,15 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         hard = mode[:3].cumsum(0) > 0  # a weld's slots; slots k >= n of an n-hinge joint (n = 1, 2)
         g = fr.hinge_dual
         error = torch.where(hard, math.matvec(g, fr.ang_err), violation)
-        mask = (hard | (violation != 0)).to(q.dtype)
-        p_m = eye * mask
+        mask = (hard | (violation != 0)).to(q.dtype)  # the diagonal of the rotation rows' projector P_m
         gt = math.transpose(g)
 
-        p_l = fr.lin_proj
-        a = math.mm(p_l, k_ll, p_l) + (eye - p_l)  # identity on the free directions keeps the blocks invertible
-        b = math.mm(p_l, k_la, gt, p_m)
-        c = math.mm(p_m, g, k_aa, gt, p_m) + eye * (1.0 - mask)
+        if sys.jnt_has_slides:  # identity on the free directions keeps the blocks invertible
+            p_l = fr.lin_proj
+            a, b = math.mm(p_l, k_ll, p_l) + (eye - p_l), math.mm(p_l, k_la, gt) * mask[None]
+        else:  # no slides: every translation is constrained, the projector is the identity
+            a, b = k_ll, math.mm(k_la, gt) * mask[None]
+        c = mask[:, None] * math.mm(g, k_aa, gt) * mask[None] + eye * (1.0 - mask)
         a_inv = math.inv3(a)
         bt_ainv = math.mm(math.transpose(b), a_inv)
         rhs_l, rhs_s = -fr.lin_err, -mask * error
