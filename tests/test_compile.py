@@ -11,7 +11,7 @@ import torch
 
 import torchsim
 from models import METHODS
-from torchsim import parts
+from torchsim import parts, pipeline
 
 MODEL = """
 <mujoco><compiler angle="degree"/><option timestep="0.004"/><worldbody><geom type="plane" size="5 5 1"/>
@@ -79,8 +79,27 @@ def test_compiled_parts_on_threads_match_eager(method="spring"):
                 compiled.append(torchsim.step(sys, compiled[-1], ctrl))
     finally:
         torchsim.compile_substeps(False)
-    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs == 2  # substep, finish: no recompiles
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs == 1  # the step, its substeps a loop
     worst = max((a - b).abs().max().item() for e, c in zip(eager, compiled) for a, b in zip(e[:6], c[:6]))
     print(f"{method}: max |eager - compiled in parts| over 5 steps {worst:.2e}")
     assert worst < 1e-4  # float32 rounding, grown over 5 steps (one step: 1e-5, test above)
     assert not compiled[-1].diverged.any()
+
+
+def test_steps_recording_gradients_run_eagerly(method="spring"):
+    """After ``compile_substeps``, a step that autograd records runs eagerly (warned once): its gradients are the
+    eager step's, not the compiled loop's (``while_loop`` gave wrong ones in torch 2.13). Nothing compiles."""
+    sys, state, ctrl = _setup(method)
+    sys = sys.replace(body_mass=sys.body_mass.clone().requires_grad_())
+    (eager_grad,) = torch.autograd.grad(torchsim.step(sys, state, ctrl).x_pos[:, :, 2].sum(), sys.body_mass)
+    torchsim.compile_substeps(part_size=0)
+    pipeline._warn_eager_for_grad.cache_clear()
+    graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
+    try:
+        with pytest.warns(UserWarning, match="requires grad"):
+            moved = torchsim.step(sys, state, ctrl).x_pos
+    finally:
+        torchsim.compile_substeps(False)
+    (grad,) = torch.autograd.grad(moved[:, :, 2].sum(), sys.body_mass)
+    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
+    assert torch.equal(grad, eager_grad) and grad.abs().sum() > 0

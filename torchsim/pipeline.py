@@ -4,7 +4,11 @@ The public state is batch-first (``State``); the substeps run in the lanes layou
 converts the bodies on entry and ``finish`` converts them back.
 """
 
+import functools
+import warnings
+
 import torch
+from torch._higher_order_ops.while_loop import while_loop
 
 from torchsim import lanes, parts, rigid
 from torchsim.kinematics import Bodies, forward, joint_frames, read_q, with_world
@@ -46,24 +50,55 @@ def public_poses(sys: System, bodies: Bodies) -> list[torch.Tensor]:
 def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
     """Advance every env by ``sys.timestep`` under controls ``ctrl (B, nu)`` (``sys.substeps`` substeps).
 
-    After ``compile_substeps()``, a CPU batch is stepped as parts of a few hundred envs on worker threads
-    (``torchsim.parts``), with the same results."""
+    After ``compile_substeps()``, the step runs compiled, and a CPU batch is stepped as parts of a few hundred envs
+    on worker threads (``torchsim.parts``), with the same results."""
     _check(sys, "ctrl", ctrl, sys.nu, state.x_pos.shape[0])
+    run = _STEP["compiled"] or _substeps
+    if run is not _substeps and _records_grad(sys, state, ctrl):
+        _warn_eager_for_grad()
+        run = _substeps
     sizes = parts.part_sizes(state)
     if len(sizes) > 1:
-        return parts.step_in_parts(_substeps, sys, state, ctrl, sizes)
-    return _substeps(sys, state, ctrl)
+        return parts.step_in_parts(run, sys, state, ctrl, sizes)
+    return run(sys, state, ctrl)
 
 
 def _substeps(sys: System, state: State, ctrl: torch.Tensor) -> State:
-    """``step`` of one batch (or part of one) on the calling thread."""
+    """``step`` of one batch (or part of one) on the calling thread.
+
+    Compiled, the substeps are one ``while_loop`` in the generated code, so a step returns to Python once, not once
+    per substep (the Python side of a compiled call cost about a quarter of a 512-env substep). Where autograd
+    records the step, they stay a Python loop: in torch 2.13 ``while_loop``'s gradients with respect to tensors
+    its body captures came out wrong (``docs/benchmarks.md``, speed pass 6).
+    """
     h = sys.timestep / sys.substeps
     inv_inertia_body = rigid.body_inverse_inertia(sys)
     bodies = with_world(*(lanes.to_lanes(x, 1) for x in state[:4]))
     ctrl = lanes.to_lanes(ctrl).contiguous()
-    for _ in range(sys.substeps):
-        bodies = SUBSTEP[sys.method](sys, bodies, ctrl, inv_inertia_body, h)
-    return SUBSTEP["finish"](sys, state, bodies)
+    substep = SUBSTEP[sys.method]
+    if torch.compiler.is_compiling() and not _records_grad(sys, state, ctrl):
+        def body(i, *b):
+            return i + 1, *substep(sys, Bodies(*b), ctrl, inv_inertia_body, h)
+
+        start = torch.zeros((), dtype=torch.int64, device=ctrl.device)
+        bodies = Bodies(*while_loop(lambda i, *b: i < sys.substeps, body, (start, *bodies))[1:])
+    else:
+        for _ in range(sys.substeps):
+            bodies = substep(sys, bodies, ctrl, inv_inertia_body, h)
+    return finish(sys, state, bodies)
+
+
+def _records_grad(sys: System, state: State, ctrl: torch.Tensor) -> bool:
+    """Whether autograd would record a step: grad mode on and some input requiring grad."""
+    return torch.is_grad_enabled() and (
+        sys.requires_grad or ctrl.requires_grad or any(x.requires_grad for x in state[:4]))
+
+
+@functools.cache
+def _warn_eager_for_grad() -> None:
+    warnings.warn("torchsim.step: an input requires grad, so this step and later ones that record gradients run "
+                  "eagerly, not compiled (the compiled substep loop does not give correct gradients in torch 2.13)",
+                  stacklevel=3)
 
 
 def finish(sys: System, old: State, bodies: Bodies) -> State:
@@ -86,21 +121,22 @@ def contain_divergence(sys: System, old: State, new: State) -> State:
     return State(*fields, diverged)
 
 
-#: The substep function of each solution method, and (key ``"finish"``) the step's read-back of ``q, qd`` and
-#: divergence check; ``compile_substeps`` swaps in compiled versions.
-SUBSTEP = {"spring": spring.substep, "xpbd": xpbd.substep, "finish": finish}
-_EAGER_SUBSTEP = dict(SUBSTEP)
-_COMPILED_SUBSTEP: dict[tuple[str, bool, bool, bool, bool], object] = {}
+#: The substep function of each solution method.
+SUBSTEP = {"spring": spring.substep, "xpbd": xpbd.substep}
+#: The compiled step ``compile_substeps`` switched on (None: eager steps), and every one compiled so far.
+_STEP: dict[str, object] = {"compiled": None}
+_COMPILED_STEP: dict[tuple[bool, bool, bool, bool], object] = {}
 
 
 def compile_substeps(enabled: bool = True, dynamic: bool = False, vectorize: bool = True,
                      cpp_wrapper: bool = True, part_size: int = 512, workers: int | None = None) -> None:
-    """Make every later ``step`` run ``torch.compile(fullgraph=True)`` substeps (``enabled=False``: eager again).
+    """Make every later ``step`` run compiled (``torch.compile(fullgraph=True)``; ``enabled=False``: eager again).
 
-    The substep is the unit worth compiling: it carries nearly all of a step's work and compiles in 1-2 minutes on
-    CPU, while the whole step (``substeps`` copies unrolled) takes far longer. The step's end (reading ``q, qd``
-    back and the divergence check) is compiled too: run eagerly at batch 4096 it costs about one compiled
-    substep. Each compiles on its first use. The switch is process-wide.
+    The step compiles as one graph in which the substeps are a ``while_loop`` over one copy of the substep, so it
+    compiles about as fast as a single substep (1-2 minutes on CPU, where ``substeps`` unrolled copies would take
+    far longer) and runs without returning to Python between substeps. It compiles on its first use (once per
+    method, dtype and part size). The switch is process-wide. Steps that autograd records (an input requires grad,
+    grad mode on) run eagerly, with a warning: the loop's gradients are not trusted (see ``step``).
 
     ``part_size`` (default 512; 0: off) and ``workers`` (default ``torch.get_num_threads()``): on CPU a batch is
     stepped as ``ceil(B / part_size)`` parts of near-equal size, spread over ``workers`` threads
@@ -119,15 +155,15 @@ def compile_substeps(enabled: bool = True, dynamic: bool = False, vectorize: boo
 
     ``cpp_wrapper=True`` (default) has inductor write the code that allocates buffers and calls the kernels in C++
     instead of Python: a substep is one kernel with ~120 buffers, and driving those from Python cost about as much
-    as the kernel itself below batch ~100 (batch 64: ~2x faster substeps; batch 4096: unchanged). It adds ~10-25 s
-    to each compilation. It was measured on CPU only; no GPU was at hand to test it on CUDA.
+    as the kernel itself below batch ~100 (batch 64: ~2x faster substeps; batch 4096: unchanged; measured when
+    each substep was a call from Python). It adds ~10-25 s to each compilation. It was measured on CPU only; no
+    GPU was at hand to test it, or the compiled loop, on CUDA.
     """
     workers = torch.get_num_threads() if workers is None else workers
     parts.PARTS.set(part_size if enabled else 0, workers if enabled else 1)
     options = ({"cpp_wrapper": cpp_wrapper} | ({} if vectorize else {"cpp.simdlen": 1})
                | ({"cpp.threads": 1} if workers > 1 else {}))
-    for method, substep in _EAGER_SUBSTEP.items():
-        key = (method, dynamic, vectorize, cpp_wrapper, workers > 1)
-        if enabled and key not in _COMPILED_SUBSTEP:
-            _COMPILED_SUBSTEP[key] = torch.compile(substep, fullgraph=True, dynamic=dynamic, options=options)
-        SUBSTEP[method] = _COMPILED_SUBSTEP[key] if enabled else substep
+    key = (dynamic, vectorize, cpp_wrapper, workers > 1)
+    if enabled and key not in _COMPILED_STEP:
+        _COMPILED_STEP[key] = torch.compile(_substeps, fullgraph=True, dynamic=dynamic, options=options)
+    _STEP["compiled"] = _COMPILED_STEP[key] if enabled else None

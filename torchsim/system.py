@@ -170,6 +170,11 @@ class System:
         return sum(g.geom_a.shape[0] for g in self.contact_groups)
 
     @property
+    def requires_grad(self) -> bool:
+        """Whether any parameter tensor requires grad (e.g. masses being fitted)."""
+        return any(t.requires_grad for t in _tensors(tuple(getattr(self, f.name) for f in dataclasses.fields(self))))
+
+    @property
     def dtype(self) -> torch.dtype:
         return self.body_ipos.dtype
 
@@ -194,3 +199,12 @@ class System:
     def replace(self, **changes) -> "System":
         """A copy with some fields replaced, e.g. ``sys.replace(body_mass=mass_per_env)`` for randomisation."""
         return dataclasses.replace(self, **changes)
+
+
+def _tensors(x):
+    """Every tensor in ``x``, a tensor or a (nested) tuple of them and other values."""
+    if isinstance(x, torch.Tensor):
+        yield x
+    elif isinstance(x, tuple):
+        for item in x:
+            yield from _tensors(item)
