@@ -53,29 +53,33 @@ def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
     After ``compile_substeps()``, the step runs compiled, and a CPU batch is stepped as parts of a few hundred envs
     on worker threads (``torchsim.parts``), with the same results."""
     _check(sys, "ctrl", ctrl, sys.nu, state.x_pos.shape[0])
-    run = _STEP["compiled"] or _substeps
-    if run is not _substeps and _records_grad(sys, state, ctrl):
-        _warn_eager_for_grad()
-        run = _substeps
+    run, compiled = _substeps, _STEP["compiled"]
+    if compiled is not None:
+        if _records_grad(sys, state, ctrl):
+            _warn_eager_for_grad()
+        else:
+            run = compiled["loop" if LOOPED[sys.method] else "calls"]
     sizes = parts.part_sizes(state)
     if len(sizes) > 1:
         return parts.step_in_parts(run, sys, state, ctrl, sizes)
     return run(sys, state, ctrl)
 
 
-def _substeps(sys: System, state: State, ctrl: torch.Tensor) -> State:
-    """``step`` of one batch (or part of one) on the calling thread.
+def _substeps(sys: System, state: State, ctrl: torch.Tensor, calls: dict | None = None) -> State:
+    """``step`` of one batch (or part of one) on the calling thread; ``calls``: the substep functions by method and
+    ``"finish"`` (default: eager), e.g. compiled ones.
 
-    Compiled, the substeps are one ``while_loop`` in the generated code, so a step returns to Python once, not once
-    per substep (the Python side of a compiled call cost about a quarter of a 512-env substep). Where autograd
-    records the step, they stay a Python loop: in torch 2.13 ``while_loop``'s gradients with respect to tensors
-    its body captures came out wrong (``docs/benchmarks.md``, speed pass 6).
+    Compiled as a whole, the substeps are one ``while_loop`` in the generated code, so a step returns to Python
+    once, not once per substep (the Python side of a compiled call cost about a quarter of a 512-env substep).
+    Where autograd records the step, they stay a Python loop: in torch 2.13 ``while_loop``'s gradients with respect
+    to tensors its body captures came out wrong (``docs/benchmarks.md``, speed pass 6).
     """
+    calls = calls or _EAGER_CALLS
     h = sys.timestep / sys.substeps
     inv_inertia_body = rigid.body_inverse_inertia(sys)
     bodies = with_world(*(lanes.to_lanes(x, 1) for x in state[:4]))
     ctrl = lanes.to_lanes(ctrl).contiguous()
-    substep = SUBSTEP[sys.method]
+    substep = calls[sys.method]
     if torch.compiler.is_compiling() and not _records_grad(sys, state, ctrl):
         def body(i, *b):
             return i + 1, *substep(sys, Bodies(*b), ctrl, inv_inertia_body, h)
@@ -85,7 +89,7 @@ def _substeps(sys: System, state: State, ctrl: torch.Tensor) -> State:
     else:
         for _ in range(sys.substeps):
             bodies = substep(sys, bodies, ctrl, inv_inertia_body, h)
-    return finish(sys, state, bodies)
+    return calls["finish"](sys, state, bodies)
 
 
 def _records_grad(sys: System, state: State, ctrl: torch.Tensor) -> bool:
@@ -123,20 +127,27 @@ def contain_divergence(sys: System, old: State, new: State) -> State:
 
 #: The substep function of each solution method.
 SUBSTEP = {"spring": spring.substep, "xpbd": xpbd.substep}
-#: The compiled step ``compile_substeps`` switched on (None: eager steps), and every one compiled so far.
-_STEP: dict[str, object] = {"compiled": None}
-_COMPILED_STEP: dict[tuple[bool, bool, bool, bool], object] = {}
+_EAGER_CALLS = SUBSTEP | {"finish": finish}
+#: Whether ``compile_substeps`` compiles a method's step as one graph with its substeps in a loop (True) or
+#: compiles the substep and the step's end as calls from Python. xpbd's loop graph kept gcc busy for over 10
+#: minutes without finishing (spring's builds in ~2.5), so xpbd keeps the calls (``docs/benchmarks.md``, pass 6).
+LOOPED = {"spring": True, "xpbd": False}
+#: The compiled steps ``compile_substeps`` switched on (None: eager steps), and every set compiled so far.
+_STEP: dict[str, dict | None] = {"compiled": None}
+_COMPILED_STEP: dict[tuple[bool, bool, bool, bool], dict] = {}
 
 
 def compile_substeps(enabled: bool = True, dynamic: bool = False, vectorize: bool = True,
                      cpp_wrapper: bool = True, part_size: int = 512, workers: int | None = None) -> None:
     """Make every later ``step`` run compiled (``torch.compile(fullgraph=True)``; ``enabled=False``: eager again).
 
-    The step compiles as one graph in which the substeps are a ``while_loop`` over one copy of the substep, so it
-    compiles about as fast as a single substep (1-2 minutes on CPU, where ``substeps`` unrolled copies would take
-    far longer) and runs without returning to Python between substeps. It compiles on its first use (once per
-    method, dtype and part size). The switch is process-wide. Steps that autograd records (an input requires grad,
-    grad mode on) run eagerly, with a warning: the loop's gradients are not trusted (see ``step``).
+    For the methods in ``LOOPED`` (spring) the step compiles as one graph in which the substeps are a
+    ``while_loop`` over one copy of the substep: it compiles in about 2.5 minutes on CPU (``substeps`` unrolled
+    copies would take far longer) and runs without returning to Python between substeps. For the others (xpbd) the
+    substep and the step's end (reading ``q, qd`` back, the divergence check) compile separately and a Python loop
+    calls them. Each compiles on its first use (once per method, dtype and part size). The switch is
+    process-wide. Steps that autograd records (an input requires grad, grad mode on) run eagerly, with a warning:
+    the loop's gradients are not trusted (see ``_substeps``).
 
     ``part_size`` (default 512; 0: off) and ``workers`` (default ``torch.get_num_threads()``): on CPU a batch is
     stepped as ``ceil(B / part_size)`` parts of near-equal size, spread over ``workers`` threads
@@ -164,6 +175,8 @@ def compile_substeps(enabled: bool = True, dynamic: bool = False, vectorize: boo
     options = ({"cpp_wrapper": cpp_wrapper} | ({} if vectorize else {"cpp.simdlen": 1})
                | ({"cpp.threads": 1} if workers > 1 else {}))
     key = (dynamic, vectorize, cpp_wrapper, workers > 1)
-    if enabled and key not in _COMPILED_STEP:
-        _COMPILED_STEP[key] = torch.compile(_substeps, fullgraph=True, dynamic=dynamic, options=options)
+    if enabled and key not in _COMPILED_STEP:  # torch.compile is lazy: each compiles on its first call
+        compiled = functools.partial(torch.compile, fullgraph=True, dynamic=dynamic, options=options)
+        calls = {name: compiled(fn) for name, fn in _EAGER_CALLS.items()}
+        _COMPILED_STEP[key] = {"loop": compiled(_substeps), "calls": functools.partial(_substeps, calls=calls)}
     _STEP["compiled"] = _COMPILED_STEP[key] if enabled else None
