@@ -53,11 +53,10 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         mask = (hard | (violation != 0)).to(q.dtype)  # the diagonal of the rotation rows' projector P_m
         gt = math.transpose(g)
 
+        a, b = k_ll, math.mm(k_la, gt) * mask[None]  # no slides: every translation is constrained, P_l = I
         if sys.jnt_has_slides:  # identity on the free directions keeps the blocks invertible
             p_l = fr.lin_proj
-            a, b = math.mm(p_l, k_ll, p_l) + (eye - p_l), math.mm(p_l, k_la, gt) * mask[None]
-        else:  # no slides: every translation is constrained, the projector is the identity
-            a, b = k_ll, math.mm(k_la, gt) * mask[None]
+            a, b = math.mm(p_l, k_ll, p_l) + (eye - p_l), math.mm(p_l, b)
         c = mask[:, None] * math.mm(g, k_aa, gt) * mask[None] + eye * (1.0 - mask)
         a_inv = math.inv3(a)
         bt_ainv = math.mm(math.transpose(b), a_inv)
