@@ -62,8 +62,9 @@ def test_compiled_step_matches_eager(method="spring"):
 
 
 def test_compiled_parts_on_threads_match_eager(method="spring"):
-    """``compile_substeps`` as the benchmarks run it: compiled substeps, the batch cut into parts that two threads
-    step at once (``torchsim.parts``; 4 parts of 2 here), joined. Same numbers as one eager whole-batch step."""
+    """``compile_substeps`` as the benchmarks run it: the compiled step (its substeps one loop), the batch cut into
+    parts that two threads step at once (``torchsim.parts``; 4 parts of 2 here), joined. Same numbers as one eager
+    whole-batch step."""
     torch._dynamo.reset()
     sys, state, ctrl = _setup(method)
     eager = [state]
