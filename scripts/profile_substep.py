@@ -67,29 +67,29 @@ def timed(fn, args, repeats):
     return compile_s, statistics.median(times)
 
 
-def spring_stages(sys, bodies, ctrl, inv_body, h):
-    """(name, function, args) for each stage of ``spring.substep``, with inputs computed eagerly once."""
-    from torchsim import integrator, joint_space, rigid
+def spring_stages(sys, bodies, ctrl, terms, h):
+    """(name, function, args) for each stage of ``spring.substep`` (and of ``spring.step_terms``, once per step),
+    with inputs computed eagerly once."""
+    from torchsim import integrator, joint_space
     from torchsim.kinematics import dof_values, joint_frames
     from torchsim.methods import spring
 
-    inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_body)
     fr = joint_frames(sys, bodies)
     axes = dof_values(sys, fr.axes)
-    force, torque = spring.joint_wrench(sys, bodies, fr, inv, h)
-    after = integrator.velocity_update(sys, bodies, inv, inv_body, force, torque, h)
+    force, torque = spring.joint_wrench(sys, bodies, fr, terms.joint_gain, h)
+    after = integrator.velocity_update(sys, bodies, terms.inv, force, torque, h)
     return [
-        ("inverse inertias", lambda b: rigid.inverse_inertia(sys, b.x_quat, inv_body), (bodies,)),
+        ("step terms (once per step)", lambda b: spring.step_terms(sys, b, h), (bodies,)),
         ("joint frames", lambda b: joint_frames(sys, b), (bodies,)),
-        ("actuator and limit forces", lambda b, f, i: spring.dof_force_wrench(sys, b, f, i, axes, ctrl, h),
-         (bodies, fr, inv)),
-        ("joint springs", lambda b, f, i: spring.joint_wrench(sys, b, f, i, h), (bodies, fr, inv)),
-        ("velocity update", lambda b, i, f, t: integrator.velocity_update(sys, b, i, inv_body, f, t, h),
-         (bodies, inv, force, torque)),
-        ("armature and damping", lambda b, a, f, i: joint_space.inertia_and_damping(sys, b, a, f, i, h)[0],
-         (bodies, after, fr, inv)),
-        ("armature-loaded inertias", lambda i: joint_space.armature_loaded_inertia(sys, i, axes), (inv,)),
-        ("contacts", lambda a, i: spring.contact_impulses(sys, a, i, h), (after, inv)),
+        ("actuator and limit forces", lambda b, f: spring.dof_force_wrench(sys, b, f, terms.limit_inv_mass, axes,
+                                                                           ctrl, h), (bodies, fr)),
+        ("joint springs", lambda b, f: spring.joint_wrench(sys, b, f, terms.joint_gain, h), (bodies, fr)),
+        ("velocity update", lambda b, f, t: integrator.velocity_update(sys, b, terms.inv, f, t, h),
+         (bodies, force, torque)),
+        ("armature and damping", lambda b, a, f: joint_space.inertia_and_damping(sys, b, a, f, terms.inv,
+                                                                                 terms.hinges, h)[0],
+         (bodies, after, fr)),
+        ("contacts", lambda a: spring.contact_impulses(sys, a, terms.loaded, h), (after,)),
         ("positions", lambda a: integrator.integrate_positions(a, h), (after,)),
     ]
 
@@ -101,7 +101,7 @@ def main():
     import mujoco
 
     import torchsim
-    from torchsim import pipeline, rigid
+    from torchsim import pipeline
     from torchsim.kinematics import with_world
     from torchsim.lanes import to_lanes
 
@@ -112,9 +112,9 @@ def main():
         q[:, sys.free_qpos[0] + 2] -= 0.05
     state = torchsim.init(sys, q, 0.1 * torch.randn(args.batch, sys.nv))
     ctrl = to_lanes(2 * torch.rand(args.batch, sys.nu) - 1).contiguous()
-    inv_body = rigid.body_inverse_inertia(sys)
     bodies = with_world(*(to_lanes(x, 1) for x in state[:4]))  # the engine's lanes layout, as step makes it
     h = sys.timestep / sys.substeps
+    terms = pipeline.STEP_TERMS[args.method](sys, bodies, h)  # what a step's substeps share
     options = {"cpp_wrapper": not args.no_cpp_wrapper} | ({"cpp.simdlen": 1} if args.scalar else {})
 
     def compiled(fn):
@@ -125,15 +125,16 @@ def main():
           f"{'dynamic' if args.dynamic else 'static'} shapes, "
           f"torch {torch.__version__}")
     substep = compiled(pipeline.SUBSTEP[args.method])
-    compile_s, sec = timed(substep, (sys, bodies, ctrl, inv_body, h), args.repeats)
+    compile_s, sec = timed(substep, (sys, bodies, ctrl, terms, h), args.repeats)
     print(f"substep: {sec * 1e3:.2f} ms (compile {compile_s:.0f} s)")
     if args.part_sizes:
-        per_env = time_part_sizes(substep, sys, bodies, ctrl, inv_body, h, args.part_sizes, args.repeats)
+        per_env = time_part_sizes(substep, pipeline.STEP_TERMS[args.method], sys, bodies, ctrl, h,
+                                  args.part_sizes, args.repeats)
         for p, us in per_env.items():
             print(f"  parts of {p:5d}: {us:.2f} us per env and substep "
                   f"({1e6 / us / sys.substeps:,.0f} steps/s on this thread, substeps only)")
     if args.count_ops:
-        per_stage = count_ops(pipeline.SUBSTEP[args.method], (sys, bodies, ctrl, inv_body, h))
+        per_stage = count_ops(pipeline.SUBSTEP[args.method], (sys, bodies, ctrl, terms, h))
         total = sum(per_stage.values())
         print(f"arithmetic: {total:,.0f} element ops per env and substep; the compiled substep took "
               f"{sec / (total * args.batch) * 1e9:.3f} ns per element op")
@@ -142,7 +143,7 @@ def main():
     if args.stages:
         if args.method != "spring":
             raise SystemExit("--stages times the spring substep's stages; use --method spring")
-        for name, fn, fn_args in spring_stages(sys, bodies, ctrl, inv_body, h):
+        for name, fn, fn_args in spring_stages(sys, bodies, ctrl, terms, h):
             compile_s, sec = timed(compiled(fn), fn_args, args.repeats)
             print(f"  {name:26s} {sec * 1e3:7.2f} ms (compile {compile_s:.0f} s)")
 
@@ -178,22 +179,26 @@ def count_ops(substep, args) -> collections.Counter:
     return per_stage
 
 
-def time_part_sizes(substep, sys, bodies, ctrl, inv_body, h, sizes, repeats):
-    """Microseconds per env and substep with the batch cut into whole parts of each of ``sizes``."""
+def time_part_sizes(substep, step_terms, sys, bodies, ctrl, h, sizes, repeats):
+    """Microseconds per env and substep with the batch cut into whole parts of each of ``sizes`` (each part's
+    ``step_terms`` built once, untimed)."""
     from torchsim.kinematics import Bodies
 
+    def part(a, p):
+        part_bodies = Bodies(*(x[..., a:a + p].contiguous() for x in bodies))
+        return part_bodies, ctrl[..., a:a + p].contiguous(), step_terms(sys, part_bodies, h)
+
     batch = ctrl.shape[-1]
-    jobs = {p: [(Bodies(*(x[..., a:a + p].contiguous() for x in bodies)), ctrl[..., a:a + p].contiguous())
-                for a in range(0, batch - p + 1, p)] for p in sizes}
+    jobs = {p: [part(a, p) for a in range(0, batch - p + 1, p)] for p in sizes}
     times = {p: [] for p in sizes}
     for p in sizes:
-        substep(sys, jobs[p][0][0], jobs[p][0][1], inv_body, h)  # compile this size
+        substep(sys, *jobs[p][0][:2], jobs[p][0][2], h)  # compile this size
     for _ in range(repeats):
         for p in sizes:
             start = time.perf_counter()
-            for part_bodies, part_ctrl in jobs[p]:  # a step's substeps on each part, as a step in parts runs them
+            for part_bodies, part_ctrl, terms in jobs[p]:  # a step's substeps on each part, as a step in parts runs them
                 for _ in range(sys.substeps):
-                    part_bodies = substep(sys, part_bodies, part_ctrl, inv_body, h)
+                    part_bodies = substep(sys, part_bodies, part_ctrl, terms, h)
             times[p].append((time.perf_counter() - start) / (p * len(jobs[p]) * sys.substeps))
     return {p: statistics.median(t) * 1e6 for p, t in times.items()}
 

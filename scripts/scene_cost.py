@@ -21,7 +21,6 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 import torchsim
 import torchsim.envs
-from torchsim import rigid
 from torchsim.kinematics import with_world
 from torchsim.lanes import to_lanes
 
@@ -62,10 +61,11 @@ def substep_cost(env) -> CostCounter:
     state = env.state
     bodies = with_world(*(to_lanes(x[:1], 1) for x in state[:4]))
     ctrl = torch.zeros(sys.nu, 1, dtype=sys.dtype)
-    inv_body = rigid.body_inverse_inertia(sys)
+    h = sys.timestep / sys.substeps
+    terms = torchsim.pipeline.STEP_TERMS[sys.method](sys, bodies, h)  # once per step, not counted
     counter = CostCounter()
     with counter:
-        torchsim.pipeline.SUBSTEP[sys.method](sys, bodies, ctrl, inv_body, sys.timestep / sys.substeps)
+        torchsim.pipeline.SUBSTEP[sys.method](sys, bodies, ctrl, terms, h)
     return counter
 
 

@@ -10,8 +10,8 @@ from torchsim.kinematics import Bodies
 from torchsim.system import System
 
 
-def velocity_update(sys: System, bodies: Bodies, inv: rigid.InverseInertia, inv_inertia_body: torch.Tensor,
-                    force: torch.Tensor, torque: torch.Tensor, h: float) -> Bodies:
+def velocity_update(sys: System, bodies: Bodies, inv: rigid.InverseInertia, force: torch.Tensor,
+                    torque: torch.Tensor, h: float) -> Bodies:
     """Advance velocities by ``h`` under gravity and ext-indexed ``force``/``torque (3, N + 1, B)`` (world frame).
 
     The gyroscopic term ``w x I w`` is taken implicitly with one Newton step in the body frame (Catto's scheme),

@@ -7,6 +7,8 @@ rates ``qd_ref``, the dof impulses ``mu`` solve ``(A + diag(1 / (J + h c))) mu =
 whose inertia includes the armature.
 """
 
+from typing import NamedTuple
+
 import torch
 
 from torchsim import lanes, math, rigid
@@ -30,33 +32,56 @@ def hinge_incidence(jnt_child, jnt_parent, dof_jnt, dof_is_hinge, num_bodies: in
     return dof, sign
 
 
-def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, frames: JointFrames,
-                     qd_ref: torch.Tensor, damping_h: torch.Tensor):
-    """Armature (a rotor per hinge dof turning at ``qd_ref (D, B)``) and implicit damping ``damping_h = h c
-    (D, 1 | B)`` on all hinge dofs at once: one dense ``D x D`` solve per env.
+class HingeCoupling(NamedTuple):
+    """The hinge dofs' coupling through the bodies at one pose, and the matrix that armature and damping turn it
+    into (see :func:`hinge_coupling`); ``D`` dofs, ``N`` bodies, ``K`` hinges per body at most.
+
+    Attributes:
+        u: (3, D, B) direction each dof turns its child about (world; zero for slides).
+        w_body: (3, N, K, B) ``I_b^-1 s u`` of the hinges on each body (``s = +1`` child, ``-1`` parent).
+        a: (D, D, B) the dofs' inverse inertia through the bodies.
+        mat_inv: (D, D, B) inverse of the solve's matrix ``A + diag(1 / (J + h c))`` (masked to the dofs with
+            armature or damping).
+        mask: (D, B) 1 on those dofs.  compliance: (D, B) their ``1 / (J + h c)``.  armature: (D, B) ``J``.
+    """
+
+    u: torch.Tensor
+    w_body: torch.Tensor
+    a: torch.Tensor
+    mat_inv: torch.Tensor
+    mask: torch.Tensor
+    compliance: torch.Tensor
+    armature: torch.Tensor
+
+
+def _per_body(sys: System, x: torch.Tensor) -> torch.Tensor:
+    """Dof values ``(..., D, B)`` gathered per body ``(..., N, K, B)`` through ``sys.body_hinge_dof``."""
+    on_body = sys.body_hinge_dof
+    return x.index_select(-2, on_body.flatten()).unflatten(-2, on_body.shape)
+
+
+def hinge_coupling(sys: System, inv: rigid.InverseInertia, frames: JointFrames,
+                   damping_h: torch.Tensor) -> HingeCoupling | None:
+    """:class:`HingeCoupling` of all hinge dofs at the poses of ``inv`` and ``frames``, with implicit damping
+    ``damping_h = h c (D, 1 | B)``.
 
     Dof ``i`` turns its child against its parent about ``u_i``, the row of ``G = A^-1`` for its slot (its axis for
     a single hinge), so ``A_ij = sum_b s_ib s_jb u_i^T I_b^-1 u_j`` (``s = +1`` child, ``-1`` parent) is the dofs'
     inverse inertia through the bodies; dofs sharing a body (the ant's four hips on the torso) are coupled
     exactly, as in MuJoCo's joint-space mass matrix. Only the ``K`` hinges on each body enter its term (the
-    load-time table ``sys.body_hinge_dof``), so building ``A`` costs ``N K^2``, not ``N D^2``. Returns bodies and
-    every dof's rate ``(D, B)`` (slides 0).
+    load-time table ``sys.body_hinge_dof``), so building ``A`` costs ``N K^2``, not ``N D^2``. None for a model
+    without dofs.
     """
     joint = sys.dof_flat // 6
     slot = (sys.dof_flat % 6 - 3).clamp_min(0)
-    child, parent = sys.jnt_child[joint], sys.jnt_parent[joint]
     hinge = lanes.param(sys.dof_is_hinge, 1)
     # row ``slot`` of the joint's hinge_dual: moving the row axis next to the joint axis gathers both in one index
     u = torch.where(hinge, math.transpose(frames.hinge_dual)[:, slot, joint], 0.0)  # (3, D, B)
     n_body, n_dof, batch = sys.num_bodies, u.shape[-2], u.shape[-1]
     if n_dof == 0:
-        return bodies, u.new_zeros(u.shape[1:])
+        return None
     on_body = sys.body_hinge_dof
-
-    def per_body(x):  # (..., D, B) -> (..., N, K, B)
-        return x.index_select(-2, on_body.flatten()).unflatten(-2, on_body.shape)
-
-    u_body = per_body(u) * lanes.param(sys.body_hinge_sign, 2)
+    u_body = _per_body(sys, u) * lanes.param(sys.body_hinge_sign, 2)
     w_body = math.matvec(inv.inertia[:, :, :n_body, None], u_body)  # (3, N, K, B)
     blocks = math.dot(u_body.unsqueeze(-2), w_body.unsqueeze(-3))  # (N, K, K, B)
     entry = (on_body.unsqueeze(-1) * n_dof + on_body.unsqueeze(-2)).flatten()
@@ -65,14 +90,25 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     inertia = armature + torch.where(hinge, damping_h, 0.0)
     mask = (inertia > 0).to(u.dtype)
     compliance = mask / inertia.clamp_min(1e-30)
-    qd_raw = math.dot(u, bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent))
-    rhs = mask * (compliance * armature * qd_ref - qd_raw)
     eye = torch.eye(n_dof, dtype=u.dtype, device=u.device)[..., None]
     mat = mask[:, None] * a * mask[None] + eye * (compliance + 1.0 - mask)
-    mu = math.spd_solve(mat, rhs)
-    d_ang = (w_body * per_body(mu)).sum(-2)  # I_b^-1 sum_k s_k u_k mu_k
+    return HingeCoupling(u, w_body, a, math.spd_solve(mat, eye), mask, compliance, armature)
+
+
+def hinge_rate_solve(sys: System, bodies: Bodies, coupling: HingeCoupling | None, qd_ref: torch.Tensor):
+    """Armature (a rotor per hinge dof turning at ``qd_ref (D, B)``) and implicit damping on all hinge dofs at
+    once, through their ``coupling``: one dense ``D x D`` solve per env. Returns bodies and every dof's rate
+    ``(D, B)`` (slides 0)."""
+    if coupling is None:
+        return bodies, qd_ref
+    u, n_body = coupling.u, sys.num_bodies
+    child, parent = rigid.dof_bodies(sys)
+    qd_raw = math.dot(u, bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent))
+    rhs = coupling.mask * (coupling.compliance * coupling.armature * qd_ref - qd_raw)
+    mu = math.matvec(coupling.mat_inv, rhs)
+    d_ang = (coupling.w_body * _per_body(sys, mu)).sum(-2)  # I_b^-1 sum_k s_k u_k mu_k
     xd_ang = torch.cat((bodies.xd_ang[..., :n_body, :] + d_ang, bodies.xd_ang[..., n_body:, :]), -2)
-    return bodies._replace(xd_ang=xd_ang), qd_raw + math.matvec(a, mu)
+    return bodies._replace(xd_ang=xd_ang), qd_raw + math.matvec(coupling.a, mu)
 
 
 def slide_inertia_and_damping(sys: System, before: Bodies, after: Bodies, axes: torch.Tensor, qd: torch.Tensor,
@@ -99,11 +135,12 @@ def armature_impulse(sys: System, inv: rigid.InverseInertia, axes: torch.Tensor,
 
 
 def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,
-                        h: float):
+                        coupling: HingeCoupling | None, h: float):
     """Armature and implicit damping on one substep's force-driven velocity change, for all dofs; ``frames``
-    measured at the substep start. Returns bodies and dof rates ``(D, B)``."""
+    measured at the substep start, ``coupling`` from :func:`hinge_coupling` with damping ``h c``. Returns bodies
+    and dof rates ``(D, B)``."""
     qd = dof_values(sys, frames.qd)
-    after, rates = hinge_rate_solve(sys, after, inv, frames, qd, h * lanes.param(sys.dof_damping, 1))
+    after, rates = hinge_rate_solve(sys, after, coupling, qd)
     if sys.jnt_has_slides:
         after, qd_slides = slide_inertia_and_damping(sys, before, after, dof_values(sys, frames.axes), qd, inv, h)
         rates = torch.where(lanes.param(sys.dof_is_hinge, 1), rates, qd_slides)

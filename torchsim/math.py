@@ -222,6 +222,7 @@ def spd_solve(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     n = a.shape[0]
     if not _compiling():
         shape = torch.broadcast_shapes(a.shape[2:], b.shape[1:])
+        a = a.view((n, n) + (1,) * (len(shape) - a.ndim + 2) + a.shape[2:])  # broadcast behind the matrix axes
         x = torch.linalg.solve_ex(a.expand((n, n) + shape).movedim((0, 1), (-2, -1)),
                                   b.expand((n,) + shape).movedim(0, -1)).result
         return x.movedim(-1, 0)

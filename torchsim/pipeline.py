@@ -10,7 +10,7 @@ import warnings
 import torch
 from torch._higher_order_ops.while_loop import while_loop
 
-from torchsim import lanes, parts, rigid
+from torchsim import lanes, parts
 from torchsim.kinematics import Bodies, forward, joint_frames, read_q, with_world
 from torchsim.methods import spring, xpbd
 from torchsim.state import State
@@ -76,19 +76,19 @@ def _substeps(sys: System, state: State, ctrl: torch.Tensor, calls: dict | None 
     """
     calls = calls or _EAGER_CALLS
     h = sys.timestep / sys.substeps
-    inv_inertia_body = rigid.body_inverse_inertia(sys)
     bodies = with_world(*(lanes.to_lanes(x, 1) for x in state[:4]))
     ctrl = lanes.to_lanes(ctrl).contiguous()
+    terms = STEP_TERMS[sys.method](sys, bodies, h)
     substep = calls[sys.method]
     if torch.compiler.is_compiling() and not _records_grad(sys, state, ctrl):
         def body(i, *b):
-            return i + 1, *substep(sys, Bodies(*b), ctrl, inv_inertia_body, h)
+            return i + 1, *substep(sys, Bodies(*b), ctrl, terms, h)
 
         start = torch.zeros((), dtype=torch.int64, device=ctrl.device)
         bodies = Bodies(*while_loop(lambda i, *b: i < sys.substeps, body, (start, *bodies))[1:])
     else:
         for _ in range(sys.substeps):
-            bodies = substep(sys, bodies, ctrl, inv_inertia_body, h)
+            bodies = substep(sys, bodies, ctrl, terms, h)
     return calls["finish"](sys, state, bodies)
 
 
@@ -125,8 +125,11 @@ def contain_divergence(sys: System, old: State, new: State) -> State:
     return State(*fields, diverged)
 
 
-#: The substep function of each solution method.
+#: Each solution method's substep ``(sys, bodies, ctrl, terms, h) -> bodies``, and the function building the
+#: ``terms`` its substeps share from the poses at the step's start (``(sys, bodies, h) -> terms``; in a compiled
+#: step with per-substep calls it runs eagerly).
 SUBSTEP = {"spring": spring.substep, "xpbd": xpbd.substep}
+STEP_TERMS = {"spring": spring.step_terms, "xpbd": xpbd.step_terms}
 _EAGER_CALLS = SUBSTEP | {"finish": finish}
 #: Whether ``compile_substeps`` compiles a method's step as one graph with its substeps in a loop (True) or
 #: compiles the substep and the step's end as calls from Python. xpbd's loop graph kept gcc busy for over 10

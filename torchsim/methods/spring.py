@@ -10,6 +10,8 @@ Tensors are in the lanes layout (``torchsim.lanes``): ext-indexed body vectors `
 ``(D, B)``.
 """
 
+from typing import NamedTuple
+
 import torch
 
 from torchsim import integrator, joint_space, lanes, math, rigid
@@ -50,23 +52,32 @@ def _joint_gains(sys: System, k_lin: torch.Tensor, k_ang: torch.Tensor, fr: Join
     return torch.stack((lin, ang), 2)
 
 
-def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.InverseInertia, h: float):
-    """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of every joint's anchor spring and alignment spring.
+def joint_gain(sys: System, fr: JointFrames, inv: rigid.InverseInertia) -> torch.Tensor:
+    """Every joint's gain matrix ``(3, 3, lin/ang, J, B)``: ``K^-1`` with ``K`` the joint's inverse-inertia block
+    in its constrained directions (see :func:`joint_wrench`).
 
-    Gains are matrices, ``kappa / h^2 K^-1`` and ``zeta / h K^-1`` with ``K`` the joint's inverse-inertia block in
-    its constrained directions: every direction is corrected by the same fraction per substep, so thin links
-    (a capsule's small inertia about its axis) stay inside the explicit stability limit.
-
-    Child and parent (and the translation and rotation springs) are stacked on an entity axis in front of the
-    joints, e.g. ``r (3, child/parent, J, B)``, so that each step of the computation is one batched op.
+    Child and parent are stacked on an entity axis in front of the joints, e.g. ``r (3, child/parent, J, B)``, so
+    that each step of the computation is one batched op.
     """
-    child, parent = sys.jnt_child, sys.jnt_parent
-    ends = torch.cat((child, parent))
+    ends = torch.cat((sys.jnt_child, sys.jnt_parent))
     m, i = rigid.gather(inv, ends)
     m, i = m.unflatten(-2, (2, -1)), i.unflatten(-2, (2, -1))  # (2, J, 1 | B), (3, 3, 2, J, B): child, parent
     r = torch.stack((fr.r_child, fr.r_parent), 1)
     k_lin = m.sum(-3) * math.eye3(m, 2) - math.skew_sandwich(r, i).sum(-3)
-    gain = _joint_gains(sys, k_lin, i.sum(-3), fr)
+    return _joint_gains(sys, k_lin, i.sum(-3), fr)
+
+
+def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tensor, h: float):
+    """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of every joint's anchor spring and alignment spring, for
+    gain matrices ``gain (3, 3, lin/ang, J, B)`` (:func:`joint_gain`).
+
+    The springs and dampers are ``kappa / h^2 K^-1`` and ``zeta / h K^-1`` with ``K`` the joint's inverse-inertia
+    block in its constrained directions: every direction is corrected by the same fraction per substep, so thin
+    links (a capsule's small inertia about its axis) stay inside the explicit stability limit.
+    """
+    child, parent = sys.jnt_child, sys.jnt_parent
+    ends = torch.cat((child, parent))
+    r = torch.stack((fr.r_child, fr.r_parent), 1)
     vel, ang = bodies.xd_vel.index_select(-2, ends), bodies.xd_ang.index_select(-2, ends)
     vel, ang = vel.unflatten(-2, (2, -1)), ang.unflatten(-2, (2, -1))
     twist = torch.stack((vel + math.cross(ang, r), ang), 1)  # (3, lin/ang, child/parent, J, B) at the anchor
@@ -111,25 +122,57 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: 
     return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
 
 
-def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, inv: rigid.InverseInertia, axes: torch.Tensor,
+def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, limit_inv_mass: torch.Tensor, axes: torch.Tensor,
                      ctrl: torch.Tensor, h: float):
     """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of the dofs' generalized forces: actuators, passive springs
-    and limits, for dof ``axes (3, D, B)`` and ``ctrl (U, B)``."""
+    and limits, for dof ``axes (3, D, B)``, ``ctrl (U, B)`` and the dofs' inverse inertias ``limit_inv_mass (D, B)``
+    (the limit springs' gains)."""
     q, qd = dof_values(sys, fr.q) + lanes.param(sys.dof_ref, 1), dof_values(sys, fr.qd)
-    tau = dof_forces(sys, q, qd, ctrl) + limit_forces(sys, q, qd, rigid.dof_inverse_mass(sys, inv, axes), h)
+    tau = dof_forces(sys, q, qd, ctrl) + limit_forces(sys, q, qd, limit_inv_mass, h)
     return rigid.dof_wrench(sys, bodies, axes, tau)
 
 
-def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: torch.Tensor, h: float) -> Bodies:
-    """Forces (actuators, limits, joint springs) -> velocities (armature, damping) -> contact impulses (on
-    armature-loaded links) -> positions. Lanes ``bodies``, ``ctrl (U, B)``, ``inv_inertia_body (3, 3, N, 1 | B)``."""
-    inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
+class StepTerms(NamedTuple):
+    """The pose-dependent coefficients of a step's substeps, built from the poses at the step's start and held for
+    its substeps, as MuJoCo holds its mass matrix for a step; the forces, errors and rates they multiply are
+    measured every substep. ``J`` joints, ``D`` dofs.
+
+    Attributes:
+        inv: world-frame inverse masses and inertias (the joint-space solve's impulses).
+        loaded: the same with each hinge's armature on its child (contacts, see
+            ``joint_space.armature_loaded_inertia``).
+        joint_gain: (3, 3, lin/ang, J, B) joint spring gain matrices (:func:`joint_gain`).
+        limit_inv_mass: (D, B) the dofs' inverse inertias (limit spring gains).
+        hinges: armature and implicit damping of the hinge dofs (``joint_space.HingeCoupling``, None without dofs).
+    """
+
+    inv: rigid.InverseInertia
+    loaded: rigid.InverseInertia
+    joint_gain: torch.Tensor
+    limit_inv_mass: torch.Tensor
+    hinges: joint_space.HingeCoupling | None
+
+
+def step_terms(sys: System, bodies: Bodies, h: float) -> StepTerms:
+    """:class:`StepTerms` at the poses of lanes ``bodies``, for substeps of ``h``."""
+    inv = rigid.inverse_inertia(sys, bodies.x_quat, rigid.body_inverse_inertia(sys))
     fr = joint_frames(sys, bodies)
     axes = dof_values(sys, fr.axes)
-    force, torque = dof_force_wrench(sys, bodies, fr, inv, axes, ctrl, h)
-    spring_force, spring_torque = joint_wrench(sys, bodies, fr, inv, h)
-    after = integrator.velocity_update(sys, bodies, inv, inv_inertia_body, force + spring_force, torque + spring_torque, h)
-    after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
+    loaded = joint_space.armature_loaded_inertia(sys, inv, axes)
+    hinges = joint_space.hinge_coupling(sys, inv, fr, h * lanes.param(sys.dof_damping, 1))
+    return StepTerms(inv, loaded, joint_gain(sys, fr, inv), rigid.dof_inverse_mass(sys, inv, axes), hinges)
+
+
+def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h: float) -> Bodies:
+    """Forces (actuators, limits, joint springs) -> velocities (armature, damping) -> contact impulses (on
+    armature-loaded links) -> positions. Lanes ``bodies``, ``ctrl (U, B)``; ``terms`` from :func:`step_terms` at
+    the step's start."""
+    fr = joint_frames(sys, bodies)
+    axes = dof_values(sys, fr.axes)
+    force, torque = dof_force_wrench(sys, bodies, fr, terms.limit_inv_mass, axes, ctrl, h)
+    spring_force, spring_torque = joint_wrench(sys, bodies, fr, terms.joint_gain, h)
+    after = integrator.velocity_update(sys, bodies, terms.inv, force + spring_force, torque + spring_torque, h)
+    after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, terms.inv, terms.hinges, h)
     if sys.contact_groups:
-        after = contact_impulses(sys, after, joint_space.armature_loaded_inertia(sys, inv, axes), h)
+        after = contact_impulses(sys, after, terms.loaded, h)
     return integrator.integrate_positions(after, h)

@@ -128,6 +128,12 @@ def stop_contacts(bodies: Bodies, inv: rigid.InverseInertia, con, active, scale_
     return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
 
 
+def step_terms(sys: System, bodies: Bodies, h: float) -> torch.Tensor:
+    """What the substeps of a step share: the body-frame inverse inertias ``(3, 3, N, 1 | B)`` (the world-frame
+    ones are rebuilt at every projection's poses)."""
+    return rigid.body_inverse_inertia(sys)
+
+
 def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: torch.Tensor, h: float) -> Bodies:
     """Forces -> velocities -> positions; project contacts, then joints (with limits and armature); velocities
     from the displacement; inelastic contact velocity pass. All lanes: ext ``bodies``, ``ctrl (U, B)``,
@@ -137,8 +143,9 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     axes = dof_values(sys, fr.axes)
     q, qd = dof_values(sys, fr.q) + lanes.param(sys.dof_ref, 1), dof_values(sys, fr.qd)
     force, torque = rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, qd, ctrl))
-    after = integrator.velocity_update(sys, bodies, inv, inv_inertia_body, force, torque, h)
-    after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
+    after = integrator.velocity_update(sys, bodies, inv, force, torque, h)
+    damping = joint_space.hinge_coupling(sys, inv, fr, h * lanes.param(sys.dof_damping, 1))
+    after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, damping, h)
     q_pred = q + h * qd_pred
     moved = integrator.integrate_positions(after, h)
     inv = rigid.inverse_inertia(sys, moved.x_quat, inv_inertia_body)
@@ -150,5 +157,6 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     xd_vel = (moved.x_pos - bodies.x_pos) / h
     xd_ang = math.quat_to_rot_vec(math.quat_mul(moved.x_quat, math.quat_conj(bodies.x_quat))) / h
     moved = stop_contacts(moved._replace(xd_vel=xd_vel, xd_ang=xd_ang), inv, con, active, scale_a, scale_b)
-    moved, _ = joint_space.hinge_rate_solve(sys, moved, inv, fr, qd_pred, torch.zeros_like(qd_pred))
+    armature = joint_space.hinge_coupling(sys, inv, fr, torch.zeros_like(qd_pred))
+    moved, _ = joint_space.hinge_rate_solve(sys, moved, armature, qd_pred)
     return moved
