@@ -40,15 +40,15 @@ class HingeCoupling(NamedTuple):
         u: (3, D, B) direction each dof turns its child about (world; zero for slides).
         w_body: (3, N, K, B) ``I_b^-1 s u`` of the hinges on each body (``s = +1`` child, ``-1`` parent).
         a: (D, D, B) the dofs' inverse inertia through the bodies.
-        mat_inv: (D, D, B) inverse of the solve's matrix ``A + diag(1 / (J + h c))`` (masked to the dofs with
-            armature or damping).
+        mat: (D, D, B) the solve's matrix ``A + diag(1 / (J + h c))`` (masked to the dofs with armature or
+            damping; the identity elsewhere).
         mask: (D, B) 1 on those dofs.  compliance: (D, B) their ``1 / (J + h c)``.  armature: (D, B) ``J``.
     """
 
     u: torch.Tensor
     w_body: torch.Tensor
     a: torch.Tensor
-    mat_inv: torch.Tensor
+    mat: torch.Tensor
     mask: torch.Tensor
     compliance: torch.Tensor
     armature: torch.Tensor
@@ -92,7 +92,7 @@ def hinge_coupling(sys: System, inv: rigid.InverseInertia, frames: JointFrames,
     compliance = mask / inertia.clamp_min(1e-30)
     eye = torch.eye(n_dof, dtype=u.dtype, device=u.device)[..., None]
     mat = mask[:, None] * a * mask[None] + eye * (compliance + 1.0 - mask)
-    return HingeCoupling(u, w_body, a, math.spd_solve(mat, eye), mask, compliance, armature)
+    return HingeCoupling(u, w_body, a, mat, mask, compliance, armature)
 
 
 def hinge_rate_solve(sys: System, bodies: Bodies, coupling: HingeCoupling | None, qd_ref: torch.Tensor):
@@ -105,7 +105,7 @@ def hinge_rate_solve(sys: System, bodies: Bodies, coupling: HingeCoupling | None
     child, parent = rigid.dof_bodies(sys)
     qd_raw = math.dot(u, bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent))
     rhs = coupling.mask * (coupling.compliance * coupling.armature * qd_ref - qd_raw)
-    mu = math.matvec(coupling.mat_inv, rhs)
+    mu = math.spd_solve(coupling.mat, rhs)
     d_ang = (coupling.w_body * _per_body(sys, mu)).sum(-2)  # I_b^-1 sum_k s_k u_k mu_k
     xd_ang = torch.cat((bodies.xd_ang[..., :n_body, :] + d_ang, bodies.xd_ang[..., n_body:, :]), -2)
     return bodies._replace(xd_ang=xd_ang), qd_raw + math.matvec(coupling.a, mu)

@@ -133,46 +133,46 @@ def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, limit_inv_mas
 
 
 class StepTerms(NamedTuple):
-    """The pose-dependent coefficients of a step's substeps, built from the poses at the step's start and held for
-    its substeps, as MuJoCo holds its mass matrix for a step; the forces, errors and rates they multiply are
-    measured every substep. ``J`` joints, ``D`` dofs.
+    """The spring gains and contact inertias of a step's substeps, built from the poses at the step's start and held
+    for its substeps; the errors and rates they multiply are measured every substep. ``J`` joints, ``D`` dofs.
 
     Attributes:
-        inv: world-frame inverse masses and inertias (the joint-space solve's impulses).
-        loaded: the same with each hinge's armature on its child (contacts, see
-            ``joint_space.armature_loaded_inertia``).
+        inv_inertia_body: (3, 3, N, 1 | B) body-frame inverse inertias (the world-frame ones are rebuilt every
+            substep: the joint-space solve diverged on the reacher and pusher when it used a step's old ones).
+        loaded: world-frame inverse masses and inertias with each hinge's armature on its child, for contacts
+            (``joint_space.armature_loaded_inertia``).
         joint_gain: (3, 3, lin/ang, J, B) joint spring gain matrices (:func:`joint_gain`).
         limit_inv_mass: (D, B) the dofs' inverse inertias (limit spring gains).
-        hinges: armature and implicit damping of the hinge dofs (``joint_space.HingeCoupling``, None without dofs).
     """
 
-    inv: rigid.InverseInertia
+    inv_inertia_body: torch.Tensor
     loaded: rigid.InverseInertia
     joint_gain: torch.Tensor
     limit_inv_mass: torch.Tensor
-    hinges: joint_space.HingeCoupling | None
 
 
 def step_terms(sys: System, bodies: Bodies, h: float) -> StepTerms:
-    """:class:`StepTerms` at the poses of lanes ``bodies``, for substeps of ``h``."""
-    inv = rigid.inverse_inertia(sys, bodies.x_quat, rigid.body_inverse_inertia(sys))
+    """:class:`StepTerms` at the poses of lanes ``bodies``."""
+    inv_inertia_body = rigid.body_inverse_inertia(sys)
+    inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
     fr = joint_frames(sys, bodies)
     axes = dof_values(sys, fr.axes)
-    loaded = joint_space.armature_loaded_inertia(sys, inv, axes)
-    hinges = joint_space.hinge_coupling(sys, inv, fr, h * lanes.param(sys.dof_damping, 1))
-    return StepTerms(inv, loaded, joint_gain(sys, fr, inv), rigid.dof_inverse_mass(sys, inv, axes), hinges)
+    return StepTerms(inv_inertia_body, joint_space.armature_loaded_inertia(sys, inv, axes), joint_gain(sys, fr, inv),
+                     rigid.dof_inverse_mass(sys, inv, axes))
 
 
 def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h: float) -> Bodies:
     """Forces (actuators, limits, joint springs) -> velocities (armature, damping) -> contact impulses (on
     armature-loaded links) -> positions. Lanes ``bodies``, ``ctrl (U, B)``; ``terms`` from :func:`step_terms` at
     the step's start."""
+    inv = rigid.inverse_inertia(sys, bodies.x_quat, terms.inv_inertia_body)
     fr = joint_frames(sys, bodies)
     axes = dof_values(sys, fr.axes)
     force, torque = dof_force_wrench(sys, bodies, fr, terms.limit_inv_mass, axes, ctrl, h)
     spring_force, spring_torque = joint_wrench(sys, bodies, fr, terms.joint_gain, h)
-    after = integrator.velocity_update(sys, bodies, terms.inv, force + spring_force, torque + spring_torque, h)
-    after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, terms.inv, terms.hinges, h)
+    after = integrator.velocity_update(sys, bodies, inv, force + spring_force, torque + spring_torque, h)
+    hinges = joint_space.hinge_coupling(sys, inv, fr, h * lanes.param(sys.dof_damping, 1))
+    after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, hinges, h)
     if sys.contact_groups:
         after = contact_impulses(sys, after, terms.loaded, h)
     return integrator.integrate_positions(after, h)
