@@ -38,14 +38,16 @@ class Contacts(NamedTuple):
         pos: (3, C, B) world contact point (midway between the surfaces) [m].
         normal: (3, C, B) unit normal from body b towards body a.
         depth: (C, B) penetration (margin - distance) [m]; the contact is active where depth > 0.
-        body_a, body_b: (C,) ext body indices.  friction: (C, 1) or, per env, (C, B).
+        body_a, body_b: (C,) ext body indices; ``body_b`` is None where every pair is a plane pair (planes
+            belong to the static world; ``torchsim.rigid`` then skips the world's side).
+        friction: (C, 1) or, per env, (C, B).
     """
 
     pos: torch.Tensor
     normal: torch.Tensor
     depth: torch.Tensor
     body_a: torch.Tensor
-    body_b: torch.Tensor
+    body_b: torch.Tensor | None
     friction: torch.Tensor
 
 
@@ -152,12 +154,18 @@ def contacts(sys: System, bodies: Bodies) -> Contacts:
     pos, normal, depth, body_a, body_b, friction = [], [], [], [], [], []
     for group in sys.contact_groups:
         k = POINTS_PER_PAIR[group.kind]
-        geom = torch.cat((group.geom_a, group.geom_b))  # both sides' world poses at once
+        on_world = group.kind.endswith("_plane")
+        geom = group.geom_a if on_world else torch.cat((group.geom_a, group.geom_b))  # moving sides' poses at once
         body = sys.geom_body[geom]
         x, q = bodies.x_pos.index_select(-2, body), bodies.x_quat.index_select(-2, body)
-        pos_a, pos_b = (x + math.quat_rotate(q, geom_pos.index_select(-2, geom))).chunk(2, -2)
-        quat_a, quat_b = math.quat_mul(q, geom_quat.index_select(-2, geom)).chunk(2, -2)
-        size_a, size_b = geom_size.index_select(-2, geom).chunk(2, -2)
+        world_pos = x + math.quat_rotate(q, geom_pos.index_select(-2, geom))
+        world_quat = math.quat_mul(q, geom_quat.index_select(-2, geom))
+        if on_world:  # the loader puts planes on the world, whose geom frames are world frames: (3|4, P, 1)
+            pos_a, pos_b = world_pos, geom_pos.index_select(-2, group.geom_b)
+            quat_a, quat_b = world_quat, geom_quat.index_select(-2, group.geom_b)
+        else:
+            (pos_a, pos_b), (quat_a, quat_b) = world_pos.chunk(2, -2), world_quat.chunk(2, -2)
+        size_a, size_b = geom_size.index_select(-2, torch.cat((group.geom_a, group.geom_b))).chunk(2, -2)
         pt, n, dist = _pair_contacts(group.kind, pos_a, quat_a, size_a, pos_b, quat_b, size_b)
         pos.append(pt.flatten(-3, -2))
         normal.append(n.flatten(-3, -2))
@@ -170,5 +178,6 @@ def contacts(sys: System, bodies: Bodies) -> Contacts:
         empty = bodies.x_pos.new_zeros(3, 0, b)
         idx = sys.geom_body.new_zeros(0)
         return Contacts(empty, empty, bodies.x_pos.new_zeros(0, b), idx, idx, bodies.x_pos.new_zeros(0, 1))
+    on_world = all(g.kind.endswith("_plane") for g in sys.contact_groups)
     return Contacts(torch.cat(pos, -2), torch.cat(normal, -2), torch.cat(depth, -2), torch.cat(body_a),
-                    torch.cat(body_b), torch.cat(friction, -2))
+                    None if on_world else torch.cat(body_b), torch.cat(friction, -2))

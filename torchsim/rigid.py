@@ -52,24 +52,36 @@ def point_inverse_mass(inv: InverseInertia, idx: torch.Tensor, r: torch.Tensor, 
     return m + math.dot(rn, math.matvec(i, rn))
 
 
-def contact_arms(bodies: Bodies, a: torch.Tensor, b: torch.Tensor, pos: torch.Tensor):
+def pair_inverse_mass(inv: InverseInertia, a, b, r_a, r_b, direction: torch.Tensor):
+    """Inverse mass ``(K, B)`` of body pairs ``a, b (K,)`` against each other for impulses along ``direction
+    (3, K, B)`` at arms ``r_a, r_b``. Throughout this module ``b=None`` (with ``r_b``, ``scale_b`` None) stands for
+    the static world on every b side: its terms are zero, so they are skipped."""
+    w_a = point_inverse_mass(inv, a, r_a, direction)
+    return w_a if b is None else w_a + point_inverse_mass(inv, b, r_b, direction)
+
+
+def contact_arms(bodies: Bodies, a: torch.Tensor, b: torch.Tensor | None, pos: torch.Tensor):
     """Arms ``r_a, r_b (3, C, B)`` from the COMs of bodies ``a`` and ``b (C,)`` to the points ``pos (3, C, B)``, and
-    the points' relative velocity ``v_rel (3, C, B)``, body a's minus body b's."""
+    the points' relative velocity ``v_rel (3, C, B)``, body a's minus body b's (``b=None``: the world)."""
     r_a = pos - bodies.x_pos.index_select(-2, a)
+    v_rel = bodies.xd_vel.index_select(-2, a) + math.cross(bodies.xd_ang.index_select(-2, a), r_a)
+    if b is None:
+        return r_a, None, v_rel
     r_b = pos - bodies.x_pos.index_select(-2, b)
-    v_rel = (bodies.xd_vel.index_select(-2, a) + math.cross(bodies.xd_ang.index_select(-2, a), r_a)
-             - bodies.xd_vel.index_select(-2, b) - math.cross(bodies.xd_ang.index_select(-2, b), r_b))
+    v_rel = v_rel - bodies.xd_vel.index_select(-2, b) - math.cross(bodies.xd_ang.index_select(-2, b), r_b)
     return r_a, r_b, v_rel
 
 
 def pair_velocity_change(inv: InverseInertia, a, b, r_a, r_b, p_lin, p_ang, scale_a=1.0, scale_b=1.0):
-    """Velocity changes ``(dv, dw)`` ``(3, K, B)`` of bodies a (``+p``) and b (``-p``) for a linear impulse
-    ``p_lin (3, K, B)`` at arms ``r_a``/``r_b`` plus an angular impulse ``p_ang``; ``scale`` (a float or ``(K, B)``)
-    averages impulses over a body's contacts."""
+    """Velocity changes ``(dv, dw)`` ``(3, K, B)`` of bodies a (``+p``) and b (``-p``; None for ``b=None``) for a
+    linear impulse ``p_lin (3, K, B)`` at arms ``r_a``/``r_b`` plus an angular impulse ``p_ang``; ``scale`` (a float
+    or ``(K, B)``) averages impulses over a body's contacts."""
     ma, ia = gather(inv, a)
-    mb, ib = gather(inv, b)
     dv_a = scale_a * ma * p_lin
     dw_a = scale_a * math.matvec(ia, math.cross(r_a, p_lin) + p_ang)
+    if b is None:
+        return dv_a, dw_a, None, None
+    mb, ib = gather(inv, b)
     dv_b = -scale_b * mb * p_lin
     dw_b = -scale_b * math.matvec(ib, math.cross(r_b, p_lin) + p_ang)
     return dv_a, dw_a, dv_b, dw_b
@@ -77,7 +89,8 @@ def pair_velocity_change(inv: InverseInertia, a, b, r_a, r_b, p_lin, p_ang, scal
 
 def scatter_pair(target: torch.Tensor, a, b, delta_a, delta_b) -> torch.Tensor:
     """Add per-pair deltas ``(..., K, B)`` to the ext rows ``a`` and ``b`` of ``target (..., N + 1, B)``."""
-    return target.index_add(-2, a, delta_a).index_add(-2, b, delta_b)
+    target = target.index_add(-2, a, delta_a)
+    return target if b is None else target.index_add(-2, b, delta_b)
 
 
 def apply_pair_velocity(bodies: Bodies, inv: InverseInertia, a, b, r_a, r_b, p_lin, p_ang, scale_a=1.0, scale_b=1.0):
@@ -95,16 +108,15 @@ def apply_pair_position(bodies: Bodies, inv: InverseInertia, a, b, r_a, r_b, p_l
         return 0.5 * math.quat_mul(torch.cat((torch.zeros_like(theta[:1]), theta)), quat)
 
     quat = scatter_pair(bodies.x_quat, a, b, quat_delta(dth_a, bodies.x_quat.index_select(-2, a)),
-                        quat_delta(dth_b, bodies.x_quat.index_select(-2, b)))
+                        None if b is None else quat_delta(dth_b, bodies.x_quat.index_select(-2, b)))
     return bodies._replace(x_pos=scatter_pair(bodies.x_pos, a, b, dx_a, dx_b), x_quat=math.normalize(quat))
 
 
 def active_count(a, b, active: torch.Tensor, num_ext: int):
-    """Per-contact ``1 / (active contacts on its body)`` ``(K, B)`` for bodies a and b, from ``active (K, B)``:
-    Jacobi averaging of contact impulses."""
-    count = active.new_zeros(num_ext, active.shape[-1]).index_add(-2, a, active).index_add(-2, b, active)
-    count = count.clamp_min(1.0)
-    return 1.0 / count.index_select(-2, a), 1.0 / count.index_select(-2, b)
+    """Per-contact ``1 / (active contacts on its body)`` ``(K, B)`` for bodies a and b (None for ``b=None``), from
+    ``active (K, B)``: Jacobi averaging of contact impulses."""
+    count = scatter_pair(active.new_zeros(num_ext, active.shape[-1]), a, b, active, active).clamp_min(1.0)
+    return 1.0 / count.index_select(-2, a), None if b is None else 1.0 / count.index_select(-2, b)
 
 
 def dof_bodies(sys: System):

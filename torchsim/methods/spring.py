@@ -112,12 +112,12 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: 
     r_a, r_b, v_rel = rigid.contact_arms(bodies, a, b, con.pos)
     v_n = math.dot(v_rel, con.normal)
     active = (con.depth > 0).to(con.depth.dtype)
-    w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
+    w_n = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, con.normal)
     j_n = active * torch.relu(-v_n + con.depth / sys.contact_timeconst) / w_n
     v_t = v_rel - v_n * con.normal
     speed_t = math.safe_norm(v_t)
     tangent = v_t / speed_t
-    w_t = rigid.point_inverse_mass(inv, a, r_a, tangent) + rigid.point_inverse_mass(inv, b, r_b, tangent)
+    w_t = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, tangent)
     j_t = torch.minimum(speed_t / w_t, con.friction * j_n)
     scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[-2])
     p_lin = j_n * con.normal - j_t * tangent

@@ -94,10 +94,10 @@ def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.I
     con = contacts(sys, bodies)
     a, b = con.body_a, con.body_b
     r_a = con.pos - bodies.x_pos.index_select(-2, a)
-    r_b = con.pos - bodies.x_pos.index_select(-2, b)
+    r_b = None if b is None else con.pos - bodies.x_pos.index_select(-2, b)
     active = (con.depth > 0).to(con.depth.dtype)
     scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[-2])
-    w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
+    w_n = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, con.normal)
     lam_n = active * con.depth / w_n
 
     def previous_point(idx, r):
@@ -105,12 +105,13 @@ def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.I
         local = math.quat_rotate_inv(bodies.x_quat.index_select(-2, idx), r)
         return previous.x_pos.index_select(-2, idx) + math.quat_rotate(previous.x_quat.index_select(-2, idx), local)
 
-    prev_a, prev_b = previous_point(a, r_a), previous_point(b, r_b)
+    prev_a = previous_point(a, r_a)
+    prev_b = con.pos if b is None else previous_point(b, r_b)  # a point on the static world stays put
     slip = prev_b - prev_a  # (p - prev_a) - (p - prev_b)
     slip = slip - math.dot(slip, con.normal) * con.normal
     slip_len = math.safe_norm(slip)
     tangent = slip / slip_len
-    w_t = rigid.point_inverse_mass(inv, a, r_a, tangent) + rigid.point_inverse_mass(inv, b, r_b, tangent)
+    w_t = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, tangent)
     lam_t = torch.minimum(slip_len / w_t, con.friction * lam_n)
     p_lin = lam_n * con.normal - lam_t * tangent
     bodies = rigid.apply_pair_position(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
@@ -123,7 +124,7 @@ def stop_contacts(bodies: Bodies, inv: rigid.InverseInertia, con, active, scale_
     ``scale_a``, ``scale_b``: ``(C, B)`` from :func:`project_contacts`."""
     a, b = con.body_a, con.body_b
     r_a, r_b, v_rel = rigid.contact_arms(bodies, a, b, con.pos)
-    w_n = rigid.point_inverse_mass(inv, a, r_a, con.normal) + rigid.point_inverse_mass(inv, b, r_b, con.normal)
+    w_n = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, con.normal)
     p_lin = -active * math.dot(v_rel, con.normal) / w_n * con.normal
     return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
 
