@@ -2,6 +2,7 @@
 
 import mujoco
 import pytest
+import torch
 
 import torchsim
 from models import ANT, CHAIN, HUMANOID, TWO_SPHERES
@@ -49,3 +50,33 @@ def test_parent_filter(filterparent, expected):
     xml = CHAIN.format(filterparent=filterparent)
     assert _pairs(xml) == expected
     assert _mujoco_contacts(xml) == expected  # the same as MuJoCo's own collision pipeline
+
+
+def test_plane_contacts_skip_the_world_exactly():
+    """With only plane pairs the contacts leave out the static world's side (``body_b`` None); every rigid-body
+    response then equals the general pair form with the world's index, to the bit (its terms are zeros)."""
+    from torchsim import lanes, rigid
+    from torchsim.collision import contacts
+    from torchsim.kinematics import with_world
+
+    sys = torchsim.load_mjcf(str(ANT), dtype=torch.float64)
+    q = torch.as_tensor(mujoco.MjModel.from_xml_path(str(ANT)).key_qpos[0])[None].repeat(3, 1)
+    q[:, 2] -= 0.08  # feet into the floor
+    torch.manual_seed(0)
+    state = torchsim.init(sys, q, torch.randn(3, sys.nv, dtype=torch.float64))
+    bodies = with_world(*(lanes.to_lanes(x, 1) for x in state[:4]))
+    con = contacts(sys, bodies)
+    assert con.body_b is None and bool((con.depth > 0).any())
+    inv = rigid.inverse_inertia(sys, bodies.x_quat, rigid.body_inverse_inertia(sys))
+    world = torch.full_like(con.body_a, sys.num_bodies)
+    p_lin = torch.randn_like(con.pos)
+    results = []
+    for b in (None, world):
+        r_a, r_b, v_rel = rigid.contact_arms(bodies, con.body_a, b, con.pos)
+        w_n = rigid.pair_inverse_mass(inv, con.body_a, b, r_a, r_b, con.normal)
+        scale_a, scale_b = rigid.active_count(con.body_a, b, (con.depth > 0).double(), sys.num_bodies + 1)
+        moved = rigid.apply_pair_velocity(bodies, inv, con.body_a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin),
+                                          scale_a, scale_b)
+        results.append((v_rel, w_n, scale_a, *moved))
+    for skipped, general in zip(*results):
+        assert torch.equal(skipped, general)

@@ -2,6 +2,9 @@
 
 Lanes layout (``torchsim.lanes``): vectors ``(3, K, B)``, matrices ``(3, 3, K, B)``, scalar fields ``(K, B)`` over
 ``K`` bodies, pairs or dofs; body gathers and scatters run over axis ``-2``.
+
+In the pair helpers ``b=None`` (with ``r_b``, ``scale_b`` and b's deltas None) stands for the static world on
+every pair's b side (contacts with planes): its terms are zero, so they are skipped.
 """
 
 from typing import NamedTuple
@@ -54,8 +57,7 @@ def point_inverse_mass(inv: InverseInertia, idx: torch.Tensor, r: torch.Tensor, 
 
 def pair_inverse_mass(inv: InverseInertia, a, b, r_a, r_b, direction: torch.Tensor):
     """Inverse mass ``(K, B)`` of body pairs ``a, b (K,)`` against each other for impulses along ``direction
-    (3, K, B)`` at arms ``r_a, r_b``. Throughout this module ``b=None`` (with ``r_b``, ``scale_b`` None) stands for
-    the static world on every b side: its terms are zero, so they are skipped."""
+    (3, K, B)`` at arms ``r_a, r_b``."""
     w_a = point_inverse_mass(inv, a, r_a, direction)
     return w_a if b is None else w_a + point_inverse_mass(inv, b, r_b, direction)
 
