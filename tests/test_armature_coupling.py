@@ -47,10 +47,15 @@ def test_hinge_incidence_lists_each_bodys_hinges():
     parent), each thigh its hip (child) and knee (parent), each shin its knee (child), and nothing else."""
     sys = torchsim.load_mjcf(str(ANT), dtype=F64)
     joint = (sys.dof_flat // 6).tolist()
+    incidences = list(zip(sys.body_hinge_body.tolist(), sys.body_hinge_dof.tolist(), sys.body_hinge_sign.tolist()))
     for body in range(sys.num_bodies):
-        listed = {(d, s) for d, s in zip(sys.body_hinge_dof[body].tolist(), sys.body_hinge_sign[body].tolist()) if s}
+        listed = {(d, s) for b, d, s in incidences if b == body}
         expected = {(d, 1.0) for d, j in enumerate(joint) if sys.jnt_child[j] == body}
         expected |= {(d, -1.0) for d, j in enumerate(joint) if sys.jnt_parent[j] == body}
         assert listed == expected, f"body {sys.body_names[body]}"
-    counts = sorted((sys.body_hinge_sign != 0).sum(1).tolist())
+    counts = sorted(sys.body_hinge_body.bincount().tolist())
     assert counts == [1, 1, 1, 1, 2, 2, 2, 2, 4]  # shins, thighs, torso
+    # the coupling's blocks: every ordered pair of incidences on one body, 4 x 4 + 4 x 2 x 2 + 4 x 1 in all
+    pairs = sys.body_hinge_pairs.tolist()
+    assert all(incidences[i][0] == incidences[k][0] for i, k in pairs) and len(pairs) == len(set(map(tuple, pairs)))
+    assert len(pairs) == 16 + 16 + 4

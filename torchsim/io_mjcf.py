@@ -283,8 +283,8 @@ def _joints(m, ipos, off):
         "slide_axes": (3, 3), "slide_pinv": (3, 3), "lin_proj": (3, 3)}.get(k, ())) for k, v in cols.items()}
     out["jnt_colors"] = _edge_colors(cols["child"], cols["parent"], len(ipos))
     out["jnt_levels"] = _levels(cols["child"], cols["parent"], len(ipos))
-    out["body_hinge_dof"], out["body_hinge_sign"] = joint_space.hinge_incidence(
-        cols["child"], cols["parent"], dofs["jnt"], dofs["is_hinge"], len(ipos))
+    incidence = joint_space.hinge_incidence(cols["child"], cols["parent"], dofs["jnt"], dofs["is_hinge"], len(ipos))
+    out.update(zip(("body_hinge_body", "body_hinge_dof", "body_hinge_sign", "body_hinge_pairs"), incidence))
     slot_dof = np.full(len(cols["child"]) * 6, -1)
     slot_dof[np.array(dofs["flat"], dtype=long)] = np.arange(len(dofs["flat"]))
     out["jnt_slot_dof"] = torch.as_tensor(slot_dof.reshape(-1, 6))

@@ -17,19 +17,20 @@ from torchsim.system import System
 
 
 def hinge_incidence(jnt_child, jnt_parent, dof_jnt, dof_is_hinge, num_bodies: int):
-    """Load-time table of the hinge dofs acting on each body: ``(dof, sign) (N, K)`` tensors, ``K`` the most
-    hinges on one body, sign +1 for the child, -1 for the parent, 0 for padding (see ``System.body_hinge_dof``)."""
-    per_body = [[] for _ in range(num_bodies)]
-    for dof, (joint, hinge) in enumerate(zip(dof_jnt, dof_is_hinge)):
-        if hinge:
-            for body, sign in ((jnt_child[joint], 1.0), (jnt_parent[joint], -1.0)):
-                if body < num_bodies:  # the world takes no impulse
-                    per_body[body].append((dof, sign))
-    width = max([1] + [len(p) for p in per_body])
-    padded = [p + [(0, 0.0)] * (width - len(p)) for p in per_body]
-    dof = torch.tensor([[d for d, _ in p] for p in padded], dtype=torch.long).reshape(num_bodies, width)
-    sign = torch.tensor([[s for _, s in p] for p in padded], dtype=torch.float64).reshape(num_bodies, width)
-    return dof, sign
+    """Load-time tables of the hinge dofs acting on each body (see ``System.body_hinge_dof``): one row per
+    (body, hinge) incidence, body ``(P,)``, dof ``(P,)`` and sign ``(P,)`` (+1 for the child, -1 for the parent),
+    grouped by body; and ``(Q, 2)`` the ordered pairs of incidences on a common body (the coupling's blocks)."""
+    incidences = []
+    for body in range(num_bodies):  # the world takes no impulse
+        for dof, (joint, hinge) in enumerate(zip(dof_jnt, dof_is_hinge)):
+            for end, sign in ((jnt_child[joint], 1.0), (jnt_parent[joint], -1.0)):
+                if hinge and end == body:
+                    incidences.append((body, dof, sign))
+    pairs = [(i, k) for i, (b_i, _, _) in enumerate(incidences)
+             for k, (b_k, _, _) in enumerate(incidences) if b_i == b_k]
+    body, dof, sign = (list(col) for col in zip(*incidences)) if incidences else ([], [], [])
+    return (torch.tensor(body, dtype=torch.long), torch.tensor(dof, dtype=torch.long),
+            torch.tensor(sign, dtype=torch.float64), torch.tensor(pairs, dtype=torch.long).reshape(-1, 2))
 
 
 class HingeCoupling(NamedTuple):
@@ -38,7 +39,7 @@ class HingeCoupling(NamedTuple):
 
     Attributes:
         u: (3, D, B) direction each dof turns its child about (world; zero for slides).
-        w_body: (3, N, K, B) ``I_b^-1 s u`` of the hinges on each body (``s = +1`` child, ``-1`` parent).
+        w: (3, P, B) ``I_b^-1 s u`` of each (body ``b``, hinge) incidence (``s = +1`` child, ``-1`` parent).
         a: (D, D, B) the dofs' inverse inertia through the bodies.
         mat: (D, D, B) the solve's matrix ``A + diag(1 / (J + h c))`` (masked to the dofs with armature or
             damping; the identity elsewhere).
@@ -46,18 +47,12 @@ class HingeCoupling(NamedTuple):
     """
 
     u: torch.Tensor
-    w_body: torch.Tensor
+    w: torch.Tensor
     a: torch.Tensor
     mat: torch.Tensor
     mask: torch.Tensor
     compliance: torch.Tensor
     armature: torch.Tensor
-
-
-def _per_body(sys: System, x: torch.Tensor) -> torch.Tensor:
-    """Dof values ``(..., D, B)`` gathered per body ``(..., N, K, B)`` through ``sys.body_hinge_dof``."""
-    on_body = sys.body_hinge_dof
-    return x.index_select(-2, on_body.flatten()).unflatten(-2, on_body.shape)
 
 
 def hinge_coupling(sys: System, inv: rigid.InverseInertia, frames: JointFrames,
@@ -68,31 +63,32 @@ def hinge_coupling(sys: System, inv: rigid.InverseInertia, frames: JointFrames,
     Dof ``i`` turns its child against its parent about ``u_i``, the row of ``G = A^-1`` for its slot (its axis for
     a single hinge), so ``A_ij = sum_b s_ib s_jb u_i^T I_b^-1 u_j`` (``s = +1`` child, ``-1`` parent) is the dofs'
     inverse inertia through the bodies; dofs sharing a body (the ant's four hips on the torso) are coupled
-    exactly, as in MuJoCo's joint-space mass matrix. Only the ``K`` hinges on each body enter its term (the
-    load-time table ``sys.body_hinge_dof``), so building ``A`` costs ``N K^2``, not ``N D^2``. None for a model
-    without dofs.
+    exactly, as in MuJoCo's joint-space mass matrix. Only the hinges on each body enter its term (the load-time
+    tables ``sys.body_hinge_*``), so building ``A`` costs ``sum_b K_b^2`` products (``K_b`` hinges on body ``b``),
+    not ``N D^2``. None for a model without dofs.
     """
     joint = sys.dof_flat // 6
     slot = (sys.dof_flat % 6 - 3).clamp_min(0)
     hinge = lanes.param(sys.dof_is_hinge, 1)
     # row ``slot`` of the joint's hinge_dual: moving the row axis next to the joint axis gathers both in one index
     u = torch.where(hinge, math.transpose(frames.hinge_dual)[:, slot, joint], 0.0)  # (3, D, B)
-    n_body, n_dof, batch = sys.num_bodies, u.shape[-2], u.shape[-1]
+    n_dof, batch = u.shape[-2], u.shape[-1]
     if n_dof == 0:
         return None
-    on_body = sys.body_hinge_dof
-    u_body = _per_body(sys, u) * lanes.param(sys.body_hinge_sign, 2)
-    w_body = math.matvec(inv.inertia[:, :, :n_body, None], u_body)  # (3, N, K, B)
-    blocks = math.dot(u_body.unsqueeze(-2), w_body.unsqueeze(-3))  # (N, K, K, B)
-    entry = (on_body.unsqueeze(-1) * n_dof + on_body.unsqueeze(-2)).flatten()
-    a = u.new_zeros(n_dof * n_dof, batch).index_add(0, entry, blocks.flatten(0, 2)).view(n_dof, n_dof, batch)
+    dof = sys.body_hinge_dof
+    u_inc = u.index_select(-2, dof) * lanes.param(sys.body_hinge_sign, 1)  # (3, P, B)
+    w = math.matvec(inv.inertia.index_select(-2, sys.body_hinge_body), u_inc)
+    first, second = sys.body_hinge_pairs.unbind(1)
+    blocks = math.dot(u_inc.index_select(-2, first), w.index_select(-2, second))  # (Q, B)
+    entry = dof[first] * n_dof + dof[second]
+    a = u.new_zeros(n_dof * n_dof, batch).index_add(0, entry, blocks).view(n_dof, n_dof, batch)
     armature = torch.where(hinge, lanes.param(sys.dof_armature, 1), 0.0)
     inertia = armature + torch.where(hinge, damping_h, 0.0)
     mask = (inertia > 0).to(u.dtype)
     compliance = mask / inertia.clamp_min(1e-30)
     eye = torch.eye(n_dof, dtype=u.dtype, device=u.device)[..., None]
     mat = mask[:, None] * a * mask[None] + eye * (compliance + 1.0 - mask)
-    return HingeCoupling(u, w_body, a, mat, mask, compliance, armature)
+    return HingeCoupling(u, w, a, mat, mask, compliance, armature)
 
 
 def hinge_rate_solve(sys: System, bodies: Bodies, coupling: HingeCoupling | None, qd_ref: torch.Tensor):
@@ -101,13 +97,12 @@ def hinge_rate_solve(sys: System, bodies: Bodies, coupling: HingeCoupling | None
     ``(D, B)`` (slides 0)."""
     if coupling is None:
         return bodies, qd_ref
-    u, n_body = coupling.u, sys.num_bodies
     child, parent = rigid.dof_bodies(sys)
-    qd_raw = math.dot(u, bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent))
+    qd_raw = math.dot(coupling.u, bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent))
     rhs = coupling.mask * (coupling.compliance * coupling.armature * qd_ref - qd_raw)
     mu = math.spd_solve(coupling.mat, rhs)
-    d_ang = (coupling.w_body * _per_body(sys, mu)).sum(-2)  # I_b^-1 sum_k s_k u_k mu_k
-    xd_ang = torch.cat((bodies.xd_ang[..., :n_body, :] + d_ang, bodies.xd_ang[..., n_body:, :]), -2)
+    d_ang = coupling.w * mu.index_select(-2, sys.body_hinge_dof)  # I_b^-1 s_k u_k mu_k, summed per body below
+    xd_ang = bodies.xd_ang.index_add(-2, sys.body_hinge_body, d_ang)
     return bodies._replace(xd_ang=xd_ang), qd_raw + math.matvec(coupling.a, mu)
 
 

@@ -40,8 +40,9 @@ class System:
     Bodies:
         body_mass: (N,) [kg], batchable.  body_inertia: (N, 3, 3) about the COM in the body frame, batchable.
         body_ipos: (N, 3) COM in the body frame.  body_parent: (N,) ext index of the parent body.
-        body_hinge_dof, body_hinge_sign: (N, K) the hinge dofs that act on each body, +1 where it is their child
-        and -1 their parent (padding: dof 0, sign 0); the sparsity of the hinges' coupling through the bodies.
+        body_hinge_body, body_hinge_dof, body_hinge_sign: (P,) the (body, hinge dof) incidences, grouped by body,
+        sign +1 where the body is the hinge's child and -1 its parent; body_hinge_pairs: (Q, 2) the ordered pairs
+        of incidences on a common body. The sparsity of the hinges' coupling through the bodies.
     Joints (one per non-free body; a body's hinges/slides/ball relative to its parent form one joint):
         jnt_child, jnt_parent: (J,).  jnt_anchor_child: (J, 3) anchor from the child COM, child frame.
         jnt_anchor_parent: (J, 3) anchor at q = 0 from the parent COM, parent frame (world frame for the world).
@@ -97,8 +98,10 @@ class System:
     body_ipos: torch.Tensor
     body_parent: torch.Tensor
     body_names: tuple
+    body_hinge_body: torch.Tensor
     body_hinge_dof: torch.Tensor
     body_hinge_sign: torch.Tensor
+    body_hinge_pairs: torch.Tensor
     # joints
     jnt_child: torch.Tensor
     jnt_parent: torch.Tensor
