@@ -35,7 +35,7 @@ def hinge_incidence(jnt_child, jnt_parent, dof_jnt, dof_is_hinge, num_bodies: in
 
 class HingeCoupling(NamedTuple):
     """The hinge dofs' coupling through the bodies at one pose, and the matrix that armature and damping turn it
-    into (see :func:`hinge_coupling`); ``D`` dofs, ``N`` bodies, ``K`` hinges per body at most.
+    into (see :func:`hinge_coupling`); ``D`` dofs, ``P`` (body, hinge) incidences (``System.body_hinge_*``).
 
     Attributes:
         u: (3, D, B) direction each dof turns its child about (world; zero for slides).
