@@ -70,7 +70,7 @@ def timed(fn, args, repeats):
 def spring_stages(sys, bodies, ctrl, terms, h):
     """(name, function, args) for each stage of ``spring.substep`` (and of ``spring.step_terms``, once per step),
     with inputs computed eagerly once."""
-    from torchsim import integrator, joint_space, lanes, rigid
+    from torchsim import integrator, joint_space, rigid
     from torchsim.kinematics import dof_values, joint_frames
     from torchsim.methods import spring
 
@@ -79,8 +79,6 @@ def spring_stages(sys, bodies, ctrl, terms, h):
     axes = dof_values(sys, fr.axes)
     force, torque = spring.joint_wrench(sys, bodies, fr, terms.joint_gain, h)
     after = integrator.velocity_update(sys, bodies, inv, force, torque, h)
-    damping_h = h * lanes.param(sys.dof_damping, 1)
-    hinges = joint_space.hinge_coupling(sys, inv, fr, damping_h)
     return [
         ("step terms (once per step)", lambda b: spring.step_terms(sys, b, h), (bodies,)),
         ("inverse inertias", lambda b: rigid.inverse_inertia(sys, b.x_quat, terms.inv_inertia_body), (bodies,)),
@@ -89,8 +87,7 @@ def spring_stages(sys, bodies, ctrl, terms, h):
                                                                            ctrl, h), (bodies, fr)),
         ("joint springs", lambda b, f: spring.joint_wrench(sys, b, f, terms.joint_gain, h), (bodies, fr)),
         ("velocity update", lambda b, f, t: integrator.velocity_update(sys, b, inv, f, t, h), (bodies, force, torque)),
-        ("joint-space coupling", lambda f: joint_space.hinge_coupling(sys, inv, f, damping_h), (fr,)),
-        ("armature and damping", lambda b, a, f: joint_space.inertia_and_damping(sys, b, a, f, inv, hinges, h)[0],
+        ("armature and damping", lambda b, a, f: joint_space.inertia_and_damping(sys, b, a, f, inv, h)[0],
          (bodies, after, fr)),
         ("contacts", lambda a: spring.contact_impulses(sys, a, terms.loaded, h), (after,)),
         ("positions", lambda a: integrator.integrate_positions(a, h), (after,)),

@@ -45,3 +45,10 @@ def test_math_matches_independent_formulas():
     m = torch.randn(5, 7, 3, 3, dtype=F64) + 3 * torch.eye(3, dtype=F64)
     inverse = lanes.from_lanes(math.inv3(lanes.to_lanes(m, 2)), 2)
     torch.testing.assert_close(inverse @ m, torch.eye(3, dtype=F64).expand_as(m), rtol=0, atol=1e-10)
+    # spd_solve broadcasts a right-hand side with more batch axes than the matrix: 4 columns of the identity
+    # against a (4, 4, B) matrix give its inverse
+    root = torch.randn(5, 4, 4, dtype=F64)
+    spd = root @ root.transpose(-1, -2) + 4 * torch.eye(4, dtype=F64)
+    solved = math.spd_solve(lanes.to_lanes(spd, 2), torch.eye(4, dtype=F64)[..., None])  # (4, 4, B)
+    torch.testing.assert_close(lanes.from_lanes(solved, 2) @ spd, torch.eye(4, dtype=F64).expand_as(spd),
+                               rtol=0, atol=1e-10)

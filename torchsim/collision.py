@@ -147,6 +147,12 @@ def _pair_contacts(kind, pa, qa, sa, pb, qb, sb):
     return _point_box(centres, ra, pb.unsqueeze(-2), qb.unsqueeze(-2), sb.unsqueeze(-2))
 
 
+def _on_world(group) -> bool:
+    """Whether every pair of a contact group has the static world as body b: plane pairs (the loader puts planes
+    on the world, whose geom frames are world frames)."""
+    return group.kind.endswith("_plane")
+
+
 def contacts(sys: System, bodies: Bodies) -> Contacts:
     """Evaluate every candidate contact point of the model at the given ext body poses (lanes ``Bodies``)."""
     geom_pos, geom_quat = lanes.param(sys.geom_pos, 1, 1), lanes.param(sys.geom_quat, 1, 1)
@@ -154,13 +160,13 @@ def contacts(sys: System, bodies: Bodies) -> Contacts:
     pos, normal, depth, body_a, body_b, friction = [], [], [], [], [], []
     for group in sys.contact_groups:
         k = POINTS_PER_PAIR[group.kind]
-        on_world = group.kind.endswith("_plane")
+        on_world = _on_world(group)
         geom = group.geom_a if on_world else torch.cat((group.geom_a, group.geom_b))  # moving sides' poses at once
         body = sys.geom_body[geom]
         x, q = bodies.x_pos.index_select(-2, body), bodies.x_quat.index_select(-2, body)
         world_pos = x + math.quat_rotate(q, geom_pos.index_select(-2, geom))
         world_quat = math.quat_mul(q, geom_quat.index_select(-2, geom))
-        if on_world:  # the loader puts planes on the world, whose geom frames are world frames: (3|4, P, 1)
+        if on_world:  # the plane's pose is its geom frame: (3|4, P, 1)
             pos_a, pos_b = world_pos, geom_pos.index_select(-2, group.geom_b)
             quat_a, quat_b = world_quat, geom_quat.index_select(-2, group.geom_b)
         else:
@@ -178,6 +184,5 @@ def contacts(sys: System, bodies: Bodies) -> Contacts:
         empty = bodies.x_pos.new_zeros(3, 0, b)
         idx = sys.geom_body.new_zeros(0)
         return Contacts(empty, empty, bodies.x_pos.new_zeros(0, b), idx, idx, bodies.x_pos.new_zeros(0, 1))
-    on_world = all(g.kind.endswith("_plane") for g in sys.contact_groups)
     return Contacts(torch.cat(pos, -2), torch.cat(normal, -2), torch.cat(depth, -2), torch.cat(body_a),
-                    None if on_world else torch.cat(body_b), torch.cat(friction, -2))
+                    None if all(map(_on_world, sys.contact_groups)) else torch.cat(body_b), torch.cat(friction, -2))

@@ -7,8 +7,6 @@ rates ``qd_ref``, the dof impulses ``mu`` solve ``(A + diag(1 / (J + h c))) mu =
 whose inertia includes the armature.
 """
 
-from typing import NamedTuple
-
 import torch
 
 from torchsim import lanes, math, rigid
@@ -33,77 +31,45 @@ def hinge_incidence(jnt_child, jnt_parent, dof_jnt, dof_is_hinge, num_bodies: in
             torch.tensor(sign, dtype=torch.float64), torch.tensor(pairs, dtype=torch.long).reshape(-1, 2))
 
 
-class HingeCoupling(NamedTuple):
-    """The hinge dofs' coupling through the bodies at one pose, and the matrix that armature and damping turn it
-    into (see :func:`hinge_coupling`); ``D`` dofs, ``P`` (body, hinge) incidences (``System.body_hinge_*``).
-
-    Attributes:
-        u: (3, D, B) direction each dof turns its child about (world; zero for slides).
-        w: (3, P, B) ``I_b^-1 s u`` of each (body ``b``, hinge) incidence (``s = +1`` child, ``-1`` parent).
-        a: (D, D, B) the dofs' inverse inertia through the bodies.
-        mat: (D, D, B) the solve's matrix ``A + diag(1 / (J + h c))`` (masked to the dofs with armature or
-            damping; the identity elsewhere).
-        mask: (D, B) 1 on those dofs.  compliance: (D, B) their ``1 / (J + h c)``.  armature: (D, B) ``J``.
-    """
-
-    u: torch.Tensor
-    w: torch.Tensor
-    a: torch.Tensor
-    mat: torch.Tensor
-    mask: torch.Tensor
-    compliance: torch.Tensor
-    armature: torch.Tensor
-
-
-def hinge_coupling(sys: System, inv: rigid.InverseInertia, frames: JointFrames,
-                   damping_h: torch.Tensor) -> HingeCoupling | None:
-    """:class:`HingeCoupling` of all hinge dofs at the poses of ``inv`` and ``frames``, with implicit damping
-    ``damping_h = h c (D, 1 | B)``.
+def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, frames: JointFrames,
+                     qd_ref: torch.Tensor, damping_h: torch.Tensor):
+    """Armature (a rotor per hinge dof turning at ``qd_ref (D, B)``) and implicit damping ``damping_h = h c
+    (D, 1 | B)`` on all hinge dofs at once: one dense ``D x D`` solve per env.
 
     Dof ``i`` turns its child against its parent about ``u_i``, the row of ``G = A^-1`` for its slot (its axis for
     a single hinge), so ``A_ij = sum_b s_ib s_jb u_i^T I_b^-1 u_j`` (``s = +1`` child, ``-1`` parent) is the dofs'
     inverse inertia through the bodies; dofs sharing a body (the ant's four hips on the torso) are coupled
     exactly, as in MuJoCo's joint-space mass matrix. Only the hinges on each body enter its term (the load-time
     tables ``sys.body_hinge_*``), so building ``A`` costs ``sum_b K_b^2`` products (``K_b`` hinges on body ``b``),
-    not ``N D^2``. None for a model without dofs.
+    not ``N D^2``. Returns bodies and every dof's rate ``(D, B)`` (slides 0).
     """
     joint = sys.dof_flat // 6
     slot = (sys.dof_flat % 6 - 3).clamp_min(0)
+    child, parent = sys.jnt_child[joint], sys.jnt_parent[joint]
     hinge = lanes.param(sys.dof_is_hinge, 1)
     # row ``slot`` of the joint's hinge_dual: moving the row axis next to the joint axis gathers both in one index
     u = torch.where(hinge, math.transpose(frames.hinge_dual)[:, slot, joint], 0.0)  # (3, D, B)
     n_dof, batch = u.shape[-2], u.shape[-1]
     if n_dof == 0:
-        return None
-    dof = sys.body_hinge_dof
-    u_inc = u.index_select(-2, dof) * lanes.param(sys.body_hinge_sign, 1)  # (3, P, B)
-    w = math.matvec(inv.inertia.index_select(-2, sys.body_hinge_body), u_inc)
+        return bodies, u.new_zeros(u.shape[1:])
+    dof, body = sys.body_hinge_dof, sys.body_hinge_body
+    u_inc = u.index_select(-2, dof) * lanes.param(sys.body_hinge_sign, 1)  # (3, P, B): one per (body, hinge)
+    w_inc = math.matvec(inv.inertia.index_select(-2, body), u_inc)  # I_b^-1 s u
     first, second = sys.body_hinge_pairs.unbind(1)
-    blocks = math.dot(u_inc.index_select(-2, first), w.index_select(-2, second))  # (Q, B)
+    blocks = math.dot(u_inc.index_select(-2, first), w_inc.index_select(-2, second))  # (Q, B)
     entry = dof[first] * n_dof + dof[second]
     a = u.new_zeros(n_dof * n_dof, batch).index_add(0, entry, blocks).view(n_dof, n_dof, batch)
     armature = torch.where(hinge, lanes.param(sys.dof_armature, 1), 0.0)
     inertia = armature + torch.where(hinge, damping_h, 0.0)
     mask = (inertia > 0).to(u.dtype)
     compliance = mask / inertia.clamp_min(1e-30)
+    qd_raw = math.dot(u, bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent))
+    rhs = mask * (compliance * armature * qd_ref - qd_raw)
     eye = torch.eye(n_dof, dtype=u.dtype, device=u.device)[..., None]
     mat = mask[:, None] * a * mask[None] + eye * (compliance + 1.0 - mask)
-    return HingeCoupling(u, w, a, mat, mask, compliance, armature)
-
-
-def hinge_rate_solve(sys: System, bodies: Bodies, coupling: HingeCoupling | None, qd_ref: torch.Tensor):
-    """Armature (a rotor per hinge dof turning at ``qd_ref (D, B)``) and implicit damping on all hinge dofs at
-    once, through their ``coupling``: one dense ``D x D`` solve per env. Returns bodies and every dof's rate
-    ``(D, B)`` (slides 0)."""
-    if coupling is None:
-        return bodies, qd_ref
-    child, parent = rigid.dof_bodies(sys)
-    qd_raw = math.dot(coupling.u, bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent))
-    rhs = coupling.mask * (coupling.compliance * coupling.armature * qd_ref - qd_raw)
-    mu = math.spd_solve(coupling.mat, rhs)
-    d_ang = coupling.w * mu.index_select(-2, sys.body_hinge_dof)  # I_b^-1 s_k u_k mu_k, summed per body below
-    xd_ang = bodies.xd_ang.index_add(-2, sys.body_hinge_body, d_ang)
-    return bodies._replace(xd_ang=xd_ang), qd_raw + math.matvec(coupling.a, mu)
+    mu = math.spd_solve(mat, rhs)
+    xd_ang = bodies.xd_ang.index_add(-2, body, w_inc * mu.index_select(-2, dof))  # I_b^-1 sum_k s_k u_k mu_k
+    return bodies._replace(xd_ang=xd_ang), qd_raw + math.matvec(a, mu)
 
 
 def slide_inertia_and_damping(sys: System, before: Bodies, after: Bodies, axes: torch.Tensor, qd: torch.Tensor,
@@ -130,12 +96,11 @@ def armature_impulse(sys: System, inv: rigid.InverseInertia, axes: torch.Tensor,
 
 
 def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,
-                        coupling: HingeCoupling | None, h: float):
+                        h: float):
     """Armature and implicit damping on one substep's force-driven velocity change, for all dofs; ``frames``
-    measured at the substep start, ``coupling`` from :func:`hinge_coupling` with damping ``h c``. Returns bodies
-    and dof rates ``(D, B)``."""
+    measured at the substep start. Returns bodies and dof rates ``(D, B)``."""
     qd = dof_values(sys, frames.qd)
-    after, rates = hinge_rate_solve(sys, after, coupling, qd)
+    after, rates = hinge_rate_solve(sys, after, inv, frames, qd, h * lanes.param(sys.dof_damping, 1))
     if sys.jnt_has_slides:
         after, qd_slides = slide_inertia_and_damping(sys, before, after, dof_values(sys, frames.axes), qd, inv, h)
         rates = torch.where(lanes.param(sys.dof_is_hinge, 1), rates, qd_slides)

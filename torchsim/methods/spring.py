@@ -173,8 +173,7 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     force, torque = dof_force_wrench(sys, bodies, fr, terms.limit_inv_mass, axes, ctrl, h)
     spring_force, spring_torque = joint_wrench(sys, bodies, fr, terms.joint_gain, h)
     after = integrator.velocity_update(sys, bodies, inv, force + spring_force, torque + spring_torque, h)
-    hinges = joint_space.hinge_coupling(sys, inv, fr, h * lanes.param(sys.dof_damping, 1))
-    after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, hinges, h)
+    after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
     if sys.contact_groups:
         after = contact_impulses(sys, after, terms.loaded, h)
     return integrator.integrate_positions(after, h)

@@ -145,8 +145,7 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     q, qd = dof_values(sys, fr.q) + lanes.param(sys.dof_ref, 1), dof_values(sys, fr.qd)
     force, torque = rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, qd, ctrl))
     after = integrator.velocity_update(sys, bodies, inv, force, torque, h)
-    damping = joint_space.hinge_coupling(sys, inv, fr, h * lanes.param(sys.dof_damping, 1))
-    after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, damping, h)
+    after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
     q_pred = q + h * qd_pred
     moved = integrator.integrate_positions(after, h)
     inv = rigid.inverse_inertia(sys, moved.x_quat, inv_inertia_body)
@@ -158,6 +157,5 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     xd_vel = (moved.x_pos - bodies.x_pos) / h
     xd_ang = math.quat_to_rot_vec(math.quat_mul(moved.x_quat, math.quat_conj(bodies.x_quat))) / h
     moved = stop_contacts(moved._replace(xd_vel=xd_vel, xd_ang=xd_ang), inv, con, active, scale_a, scale_b)
-    armature = joint_space.hinge_coupling(sys, inv, fr, torch.zeros_like(qd_pred))
-    moved, _ = joint_space.hinge_rate_solve(sys, moved, armature, qd_pred)
+    moved, _ = joint_space.hinge_rate_solve(sys, moved, inv, fr, qd_pred, torch.zeros_like(qd_pred))
     return moved
