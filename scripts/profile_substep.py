@@ -75,14 +75,14 @@ def spring_stages(sys, bodies, ctrl, terms, h):
     from torchsim.methods import spring
 
     inv = rigid.inverse_inertia(sys, bodies.x_quat, terms.inv_inertia_body)
-    fr = joint_frames(sys, bodies)
+    fr = joint_frames(sys, bodies, all_slots=False, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
     force, torque = spring.joint_wrench(sys, bodies, fr, terms.joint_gain, h)
     after = integrator.velocity_update(sys, bodies, inv, force, torque, h)
     return [
         ("step terms (once per step)", lambda b: spring.step_terms(sys, b, h), (bodies,)),
         ("inverse inertias", lambda b: rigid.inverse_inertia(sys, b.x_quat, terms.inv_inertia_body), (bodies,)),
-        ("joint frames", lambda b: joint_frames(sys, b), (bodies,)),
+        ("joint frames", lambda b, r: joint_frames(sys, b, all_slots=False, rot=r), (bodies, inv.rot)),
         ("actuator and limit forces", lambda b, f: spring.dof_force_wrench(sys, b, f, terms.limit_inv_mass, axes,
                                                                            ctrl, h), (bodies, fr)),
         ("joint springs", lambda b, f: spring.joint_wrench(sys, b, f, terms.joint_gain, h), (bodies, fr)),
@@ -157,25 +157,42 @@ _REDUCTIONS = {"amax", "amin", "mean", "sum"}
 
 
 def count_ops(substep, args) -> collections.Counter:
-    """Element ops per env of ``substep(*args)``, by the ``torchsim`` function the substep called them from."""
+    """Element ops per env of ``substep(*args)``, by the ``torchsim`` function the substep called them from.
+
+    The substep is traced to an FX graph (the ops ``torch.compile`` sees) and dead code is removed first, as inductor
+    removes it: results nothing reads (e.g. joint fields that only a step's end or the other method uses) do not
+    count. Each graph node's stage comes from the Python stack of the op that made it."""
+    from torch.fx.experimental.proxy_tensor import make_fx
     from torch.utils._python_dispatch import TorchDispatchMode
 
-    batch = args[2].shape[-1]
-    per_stage = collections.Counter()
+    sys, bodies, ctrl, terms, h = args
+    stages = []  # (op, stage) of every op dispatched while tracing, in the order the graph's nodes are made
 
-    class Count(TorchDispatchMode):
+    class Stage(TorchDispatchMode):
         def __torch_dispatch__(self, func, types, op_args=(), kwargs=None):
-            out = func(*op_args, **(kwargs or {}))
-            name = func.__name__.split(".")[0]
-            if name in _ARITHMETIC or name in _REDUCTIONS:
-                counted = op_args[0] if name in _REDUCTIONS else out
-                frames = [f for f in traceback.extract_stack() if "/torchsim/" in f.filename]
-                stage = frames[1].name if len(frames) > 1 else frames[0].name
-                per_stage[stage] += counted.numel() / batch
-            return out
+            frames = [f for f in traceback.extract_stack() if "/torchsim/" in f.filename]
+            stages.append((func, frames[1].name if len(frames) > 1 else frames[0].name))
+            return func(*op_args, **(kwargs or {}))
 
-    with mock.patch("torchsim.math._compiling", return_value=True), Count():  # the paths torch.compile traces
-        substep(*args)
+    def traced(b, c):
+        with Stage():
+            return substep(sys, b, c, terms, h)
+
+    with mock.patch("torchsim.math._compiling", return_value=True):  # the paths torch.compile traces
+        graph = make_fx(traced)(bodies, ctrl).graph
+    nodes = [n for n in graph.nodes if isinstance(n.target, torch._ops.OpOverload)]  # not tuples' getitem
+    # make_fx records a tensor constant's lift_fresh as lift_fresh_copy; every other node is the op dispatched
+    if len(nodes) != len(stages) or any(n.target != func and "lift_fresh" not in str(func)
+                                        for n, (func, _) in zip(nodes, stages)):
+        raise RuntimeError("the traced graph's ops do not line up with the dispatched ops")
+    stage_of = {n: stage for n, (_, stage) in zip(nodes, stages)}
+    graph.eliminate_dead_code()
+    per_stage = collections.Counter()
+    for node in graph.nodes:
+        name = getattr(node.target, "__name__", "").split(".")[0]
+        if node.op == "call_function" and (name in _ARITHMETIC or name in _REDUCTIONS):
+            counted = node.args[0] if name in _REDUCTIONS else node
+            per_stage[stage_of[node]] += counted.meta["val"].numel() / ctrl.shape[-1]
     return per_stage
 
 

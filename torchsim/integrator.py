@@ -15,21 +15,23 @@ def velocity_update(sys: System, bodies: Bodies, inv: rigid.InverseInertia, forc
     """Advance velocities by ``h`` under gravity and ext-indexed ``force``/``torque (3, N + 1, B)`` (world frame).
 
     The gyroscopic term ``w x I w`` is taken implicitly with one Newton step in the body frame (Catto's scheme),
-    which keeps a freely spinning body's energy and momentum bounded at large ``h``.
+    which keeps a freely spinning body's energy and momentum bounded at large ``h``. Frames change through the
+    rotation matrices ``inv.rot`` (a product with a matrix costs half a quaternion rotation).
     """
     n = sys.num_bodies
     moving = (inv.mass > 0).to(force.dtype)
     gravity = lanes.param(sys.gravity, 0, 1)[:, None]  # (3, 1, 1 | B): one value for every body
     xd_vel = bodies.xd_vel + h * (gravity * moving + inv.mass * force)
-    quat = bodies.x_quat[..., :n, :]
-    w_body = math.quat_rotate_inv(quat, bodies.xd_ang[..., :n, :])
-    torque_body = math.quat_rotate_inv(quat, torque[..., :n, :])
+    rot = inv.rot[..., :n, :]
+    rot_t = math.transpose(rot)
+    w_body = math.matvec(rot_t, bodies.xd_ang[..., :n, :])
+    torque_body = math.matvec(rot_t, torque[..., :n, :])
     inertia = lanes.param(sys.body_inertia, 1, 2)
     i_w = math.matvec(inertia, w_body)
     residual = h * math.cross(w_body, i_w) - h * torque_body
     jac = inertia + h * (math.skew_mm(w_body, inertia) - math.skew(i_w))
     w_body = w_body - math.matvec(math.inv3(jac), residual)
-    xd_ang = torch.cat((math.quat_rotate(quat, w_body), bodies.xd_ang[..., n:, :]), -2)
+    xd_ang = torch.cat((math.matvec(rot, w_body), bodies.xd_ang[..., n:, :]), -2)
     return bodies._replace(xd_vel=xd_vel, xd_ang=xd_ang)
 
 

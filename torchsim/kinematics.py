@@ -32,7 +32,8 @@ class JointFrames(NamedTuple):
     Attributes:
         q: (J, 6, B) coordinates of the 3 slide then 3 hinge slots, relative to the zero frame (no ``ref``).
         qd: (J, 6, B) their rates.
-        axes: (3, J, 6, B) world direction of each slot (slide direction or hinge axis).
+        axes: (3, J, 6, B) world direction of each slot (slide direction or hinge axis; see ``all_slots`` of
+            :func:`joint_frames`).
         r_parent, r_child: (3, J, B) world vectors from each body's COM to the joint anchor.
         lin_err: (3, J, B) constrained part of the child-anchor offset from the parent anchor (world) [m].
         lin_proj: (3, 3, J, B) world projector onto the constrained translation directions.
@@ -76,13 +77,18 @@ def _rotate_about(axis, v, angle):
     return v * torch.cos(angle) + math.cross(axis, v) * torch.sin(angle)
 
 
-def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None, coordinates: bool = True) -> JointFrames:
+def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None, coordinates: bool = True,
+                 all_slots: bool = True, rot: torch.Tensor | None = None) -> JointFrames:
     """Measure the joints ``joints (K,)`` (default: all) from lanes ext body states (see :class:`JointFrames`;
     ``J`` there is ``K``).
 
     With ``coordinates=False`` only the constraint fields are computed (``q``, ``qd``, ``axes``, ``quat_rel``,
-    ``ang_rel``, ``hinge_dual`` are None). Work for joint kinds absent from the model is skipped (``sys.jnt_kinds``,
-    static).
+    ``ang_rel``, ``hinge_dual`` are None). With ``all_slots=False`` the hinge slots that carry no dof may come out
+    zero in ``axes``, ``qd`` and ``hinge_dual``: a model without 2- and 3-hinge joints then skips the zero frame's
+    axes a2, a3, which only xpbd's position solve reads. Work for joint kinds absent from the model is skipped
+    (``sys.jnt_kinds``, static). ``rot (3, 3, N + 1, B)``: the bodies' rotation matrices where the caller has them
+    (default: built from ``bodies.x_quat``); body-fixed vectors turn through them, at half a quaternion rotation's
+    cost.
     """
 
     def sel(t):
@@ -94,14 +100,23 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     weld, one, two, three, _ = sys.jnt_kinds
     xp, qp, vp, wp = (t.index_select(-2, sel(sys.jnt_parent)) for t in bodies)
     xc, qc, vc, wc = (t.index_select(-2, sel(sys.jnt_child)) for t in bodies)
-    quat0 = math.quat_mul(qp, const(sys.jnt_quat0, 1, 1))  # zero frame of the child, in the world
-    r_parent = math.quat_rotate(qp, const(sys.jnt_anchor_parent, 1, 1))
-    r_child = math.quat_rotate(qc, const(sys.jnt_anchor_child, 1, 1))
+    rot = math.quat_to_mat(bodies.x_quat) if rot is None else rot
+    rot_p, rot_c = rot.index_select(-2, sel(sys.jnt_parent)), rot.index_select(-2, sel(sys.jnt_child))
+    quat0_p = const(sys.jnt_quat0, 1, 1)  # zero frame of the child, in the parent's frame
+    quat0 = math.quat_mul(qp, quat0_p)  # ... and in the world
+    r_parent = math.matvec(rot_p, const(sys.jnt_anchor_parent, 1, 1))
+    r_child = math.matvec(rot_c, const(sys.jnt_anchor_child, 1, 1))
     delta = (xc + r_child) - (xp + r_parent)
     mode = const(sys.jnt_mode, 2, 0)  # (J, 5, 1): weld, 1, 2, 3 hinges, ball
-    axes = const(sys.jnt_axes, 2, 1)  # (3, J, 3, 1): a1..a3 along axis -2
+    axes = const(sys.jnt_axes, 2, 1)  # (3, J, 3, 1): a1..a3 along axis -2, zero frame (= child frame)
     a1, a2, a3 = axes.unbind(-2)
-    axes0 = math.quat_rotate(quat0.unsqueeze(-2), axes)  # (3, J, 3, B): a1..a3 in the zero frame, world
+    axes_p = math.quat_rotate(quat0_p.unsqueeze(-2), axes)  # (3, J, 3, 1): a1..a3 in the parent's frame
+    dof_slots_only = not (all_slots or two or three)  # then every hinge dof is a single hinge's slot a1
+    if dof_slots_only:
+        a1_w, a2_w = (math.matvec(rot_p, axes_p[:, :, k]) for k in (0, 1))
+    else:
+        axes0 = math.matvec(rot_p.unsqueeze(-2), axes_p)  # (3, J, 3, B): a1..a3 in the zero frame, world
+        a1_w, a2_w = axes0[:, :, 0], axes0[:, :, 1]
     eye = math.eye3(xp, 2)
     zero3 = torch.zeros_like(delta)
 
@@ -112,14 +127,13 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
         lin_err = math.matvec(lin_proj, delta)
     else:
         lin_proj, lin_err = eye.expand((3,) + delta.shape), delta
-    a1_w = axes0[:, :, 0]
-    a2_c = math.quat_rotate(qc, a2) if two else None  # a2 turning with the child, world
+    a2_c = math.matvec(rot_c, a2) if two else None  # a2 turning with the child, world
     ang_err, ang_proj = zero3, torch.zeros_like(lin_proj)
     if weld:
         ang_err = ang_err + mode[:, 0] * math.quat_to_rot_vec(math.quat_mul(qc, math.quat_conj(quat0)))
         ang_proj = ang_proj + mode[:, 0] * eye
     if one:
-        ang_err = ang_err + mode[:, 1] * math.cross(a1_w, math.quat_rotate(qc, a1))
+        ang_err = ang_err + mode[:, 1] * math.cross(a1_w, math.matvec(rot_c, a1))
         ang_proj = ang_proj + mode[:, 1] * (eye - math.outer(a1_w, a1_w))
     n12 = math.normalize(math.cross(a1_w, a2_c)) if two else zero3
     if two:
@@ -133,13 +147,13 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     # hinge coordinates: decompose the relative rotation about the joint's axes (a1 parent-fixed, last child-fixed)
     quat_rel = math.quat_mul(math.quat_conj(quat0), qc)
     ang_rel_w = wc - wp
-    r_a2 = math.quat_rotate(quat_rel, a2)
-    rt_a1 = math.quat_rotate_inv(quat_rel, a1)
-    q1 = (mode[:, 1] + mode[:, 2]) * math.angle_about(a1, a2, r_a2)  # 1 hinge: a2 is a perpendicular of a1
-    q2 = mode[:, 2] * -math.angle_about(a2, a1, rt_a1) if two else torch.zeros_like(q1)
-    q3 = torch.zeros_like(q1)
-    hinge_axes = axes0  # slots: the zero frame's a1..a3, except where 2 or 3 hinges turn the later axes (below)
-    if two or three:
+    # the turn about a1 taking the zero frame's a2 (a perpendicular of a1) to the child's, measured in the world
+    a2_c = math.matvec(rot_c, a2) if a2_c is None else a2_c
+    q1 = (mode[:, 1] + mode[:, 2]) * math.angle_about(a1_w, a2_w, a2_c)
+    q2 = q3 = torch.zeros_like(q1)
+    if two or three:  # slots: the zero frame's a1..a3, except where 2 or 3 hinges turn the later axes
+        rt_a1 = math.quat_rotate_inv(quat_rel, a1)
+        q2 = mode[:, 2] * -math.angle_about(a2, a1, rt_a1) if two else q2
         col2 = (1 - mode[:, 2] - mode[:, 3]) * axes0[:, :, 1] + mode[:, 2] * a2_c
         col3 = (1 - mode[:, 2] - mode[:, 3]) * axes0[:, :, 2] + mode[:, 2] * n12
     if three:
@@ -150,15 +164,21 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
         q1 = q1 + m3 * math.angle_about(a1, _rotate_about(a2, a3, mid), r_a3)
         q2 = q2 + m3 * mid
         q3 = m3 * -math.angle_about(a3, _rotate_about(a2, a1, -mid), rt_a1)
-        a3_c = math.quat_rotate(qc, a3)
+        a3_c = math.matvec(rot_c, a3)
         col2 = col2 + m3 * handed * math.normalize(math.cross(a3_c, a1_w))
         col3 = col3 + m3 * a3_c
-    if two or three:
-        hinge_axes = torch.stack((a1_w, col2, col3), -2)
-        hinge_dual = math.inv3(hinge_axes.movedim(-2, 1))  # the inverse of the matrix with the axes as columns
-    else:  # the zero frame's axes are orthonormal (``System.jnt_axes``): that matrix's inverse is its transpose
+    if dof_slots_only:  # slot a1 alone, the others zero: a unit axis is its own dual
+        hinge_axes = torch.stack((a1_w, zero3, zero3), -2)
         hinge_dual = hinge_axes.movedim(-2, 0)
-    qd_hinge = math.matvec(hinge_dual, ang_rel_w)
+        qd_hinge = torch.stack((math.dot(a1_w, ang_rel_w), q2, q3))
+    else:
+        if two or three:
+            hinge_axes = torch.stack((a1_w, col2, col3), -2)
+            hinge_dual = math.inv3(hinge_axes.movedim(-2, 1))  # the inverse of the matrix with the axes as columns
+        else:  # the zero frame's axes are orthonormal (``System.jnt_axes``): that matrix's inverse is its transpose
+            hinge_axes = axes0
+            hinge_dual = hinge_axes.movedim(-2, 0)
+        qd_hinge = math.matvec(hinge_dual, ang_rel_w)
 
     # slides: the anchor offset in the zero frame, mapped onto the slide axes
     if sys.jnt_has_slides:

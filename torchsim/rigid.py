@@ -18,12 +18,14 @@ from torchsim.system import System
 
 class InverseInertia(NamedTuple):
     """Ext-indexed inverse masses ``(N + 1, 1 | B)`` and world-frame inverse inertias ``(3, 3, N + 1, B)``; the
-    static world (index N) has zero of both, so impulses on it vanish. ``rot (3, 3, N, B)``: the body rotations
-    they were built for (kept for reuse)."""
+    static world (index N) has zero of both, so impulses on it vanish. ``rot (3, 3, N + 1, B)``: the ext body
+    rotations they were built for (the world's: the identity), and ``body (3, 3, N, 1 | B)`` the body-frame inverse
+    inertias they rotate (None where the world-frame ones carry more, e.g. armature), kept for reuse."""
 
     mass: torch.Tensor
     inertia: torch.Tensor
     rot: torch.Tensor
+    body: torch.Tensor | None
 
 
 def body_inverse_inertia(sys: System) -> torch.Tensor:
@@ -34,12 +36,13 @@ def body_inverse_inertia(sys: System) -> torch.Tensor:
 def inverse_inertia(sys: System, x_quat: torch.Tensor, inv_inertia_body: torch.Tensor) -> InverseInertia:
     """World-frame ``R I^-1 R^T`` for ext orientations ``x_quat (4, N + 1, B)`` and body-frame inverse inertias
     ``inv_inertia_body (3, 3, N, 1 | B)``."""
-    rot = math.quat_to_mat(x_quat[:, :-1])
-    inv_world = math.mm(rot, inv_inertia_body, math.transpose(rot))
+    rot = math.quat_to_mat(x_quat)
+    body_rot = rot[..., :-1, :]
+    inv_world = math.mm(body_rot, inv_inertia_body, math.transpose(body_rot))
     inv_world = torch.cat((inv_world, torch.zeros_like(inv_world[..., :1, :])), -2)
     inv_mass = 1.0 / lanes.param(sys.body_mass, 1)
     inv_mass = torch.cat((inv_mass, torch.zeros_like(inv_mass[:1])), -2)
-    return InverseInertia(inv_mass, inv_world, rot)
+    return InverseInertia(inv_mass, inv_world, rot, inv_inertia_body)
 
 
 def gather(inv: InverseInertia, idx: torch.Tensor):

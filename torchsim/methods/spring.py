@@ -157,7 +157,7 @@ def step_terms(sys: System, bodies: Bodies, h: float) -> StepTerms:
     """:class:`StepTerms` at the poses of lanes ``bodies``."""
     inv_inertia_body = rigid.body_inverse_inertia(sys)
     inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
-    fr = joint_frames(sys, bodies)
+    fr = joint_frames(sys, bodies, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
     return StepTerms(inv_inertia_body, joint_space.armature_loaded_inertia(sys, inv, axes), joint_gain(sys, fr, inv),
                      rigid.dof_inverse_mass(sys, inv, axes))
@@ -168,7 +168,7 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     armature-loaded links) -> positions. Lanes ``bodies``, ``ctrl (U, B)``; ``terms`` from :func:`step_terms` at
     the step's start."""
     inv = rigid.inverse_inertia(sys, bodies.x_quat, terms.inv_inertia_body)
-    fr = joint_frames(sys, bodies)
+    fr = joint_frames(sys, bodies, all_slots=False, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
     force, torque = dof_force_wrench(sys, bodies, fr, terms.limit_inv_mass, axes, ctrl, h)
     spring_force, spring_torque = joint_wrench(sys, bodies, fr, terms.joint_gain, h)

@@ -140,7 +140,7 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     from the displacement; inelastic contact velocity pass. All lanes: ext ``bodies``, ``ctrl (U, B)``,
     ``inv_inertia_body (3, 3, N, 1|B)``."""
     inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
-    fr = joint_frames(sys, bodies)
+    fr = joint_frames(sys, bodies, all_slots=False, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
     q, qd = dof_values(sys, fr.q) + lanes.param(sys.dof_ref, 1), dof_values(sys, fr.qd)
     force, torque = rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, qd, ctrl))
