@@ -89,7 +89,7 @@ def spring_stages(sys, bodies, ctrl, terms, h):
         ("velocity update", lambda b, f, t: integrator.velocity_update(sys, b, inv, f, t, h), (bodies, force, torque)),
         ("armature and damping", lambda b, a, f: joint_space.inertia_and_damping(sys, b, a, f, inv, h)[0],
          (bodies, after, fr)),
-        ("contacts", lambda a: spring.contact_impulses(sys, a, terms.loaded, h), (after,)),
+        ("contacts", lambda a, r: spring.contact_impulses(sys, a, terms.loaded, h, r), (after, inv.rot)),
         ("positions", lambda a: integrator.integrate_positions(a, h), (after,)),
     ]
 

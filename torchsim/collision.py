@@ -51,9 +51,9 @@ class Contacts(NamedTuple):
     friction: torch.Tensor
 
 
-def _segment(pos, quat, size):
-    """End points of a capsule's axis segment (local z, half-length ``size[1]``)."""
-    half = math.quat_rotate(quat, torch.stack((torch.zeros_like(size[1]),) * 2 + (size[1],)))
+def _segment(pos, rot, size):
+    """End points of a capsule's axis segment (local z, the frame's last column; half-length ``size[1]``)."""
+    half = rot[:, -1] * size[1]
     return pos - half, pos + half
 
 
@@ -84,9 +84,9 @@ def _sphere_sphere(ca, ra, cb, rb):
     return midpoint, normal, dist - ra - rb
 
 
-def _point_box(x, r, box_pos, box_quat, half):
+def _point_box(x, r, box_pos, box_rot, half):
     """Sphere of radius ``r`` at ``x`` against a box: (point, normal box->sphere, distance); exact inside and out."""
-    local = math.quat_rotate_inv(box_quat, x - box_pos)
+    local = math.matvec(math.transpose(box_rot), x - box_pos)
     clamped = torch.maximum(torch.minimum(local, half), -half)
     outside_vec = local - clamped
     out_dist = math.safe_norm(outside_vec)
@@ -97,54 +97,58 @@ def _point_box(x, r, box_pos, box_quat, half):
     in_normal = axis * torch.where(local >= 0, 1.0, -1.0)
     normal_local = torch.where(outside, outside_vec / out_dist, in_normal)
     dist = torch.where(outside, out_dist, -(face_gap * axis).sum(0)) - r
-    normal = math.quat_rotate(box_quat, normal_local)
+    normal = math.matvec(box_rot, normal_local)
     return x - normal * (r + 0.5 * dist), normal, dist
 
 
-def _box_corners(pos, quat, size):
-    """World corners ``(3, P, 8, B)`` of boxes at poses ``(3, P, B)``, ``(4, P, B)`` with half sizes ``(3, P, 1)``."""
+def _box_corners(pos, rot, size):
+    """World corners ``(3, P, 8, B)`` of boxes at positions ``(3, P, B)`` and rotations ``(3, 3, P, B)`` with half
+    sizes ``(3, P, 1)``."""
     corners = _CORNERS.to(pos) * size.unsqueeze(-2)
-    return pos.unsqueeze(-2) + math.quat_rotate(quat.unsqueeze(-2), corners)
+    return pos.unsqueeze(-2) + math.matvec(rot.unsqueeze(-2), corners)
 
 
-def _pair_contacts(kind, pa, qa, sa, pb, qb, sb):
-    """Contacts of one shape pair for world geom poses ``(3|4, P, B)`` and sizes ``(3, P, 1)``; returns point
+def _pair_contacts(kind, pa, rot_a, sa, pb, rot_b, sb):
+    """Contacts of one shape pair for world geom positions ``(3, P, B)``, rotations ``rot_a, rot_b (3, 3, P, B)``
+    (only their z columns, ``(3, 1, P, B)``, where the pair has no box) and sizes ``(3, P, 1)``; returns point
     ``(3, P, K, B)``, normal ``(3, P, K, B)``, distance ``(P, K, B)``."""
     if kind.endswith("_plane"):
-        normal = math.quat_rotate(qb, pb.new_tensor([0.0, 0.0, 1.0]).view(3, 1, 1))
+        normal = rot_b[:, -1]  # the plane's z axis
         if kind == "sphere_plane":
             pts, radius = pa.unsqueeze(-2), sa[0].unsqueeze(-2)
         elif kind == "capsule_plane":
-            pts, radius = torch.stack(_segment(pa, qa, sa), -2), sa[0].unsqueeze(-2)
+            pts, radius = torch.stack(_segment(pa, rot_a, sa), -2), sa[0].unsqueeze(-2)
         else:
-            pts, radius = _box_corners(pa, qa, sa), 0.0
+            pts, radius = _box_corners(pa, rot_a, sa), 0.0
         normal = normal.unsqueeze(-2).expand_as(pts)
         dist = math.dot(pts - pb.unsqueeze(-2), normal) - radius
         return pts - normal * (radius + 0.5 * dist), normal, dist
     if kind == "box_box":
-        pt_a, n_a, d_a = _point_box(_box_corners(pa, qa, sa), 0.0, pb.unsqueeze(-2), qb.unsqueeze(-2), sb.unsqueeze(-2))
-        pt_b, n_b, d_b = _point_box(_box_corners(pb, qb, sb), 0.0, pa.unsqueeze(-2), qa.unsqueeze(-2), sa.unsqueeze(-2))
+        pt_a, n_a, d_a = _point_box(_box_corners(pa, rot_a, sa), 0.0, pb.unsqueeze(-2), rot_b.unsqueeze(-2),
+                                    sb.unsqueeze(-2))
+        pt_b, n_b, d_b = _point_box(_box_corners(pb, rot_b, sb), 0.0, pa.unsqueeze(-2), rot_a.unsqueeze(-2),
+                                    sa.unsqueeze(-2))
         return torch.cat((pt_a, pt_b), -2), torch.cat((n_a, -n_b), -2), torch.cat((d_a, d_b), -2)
     # sphere-like a (sphere, or points on a capsule's segment)
     if kind.startswith("sphere"):
         centres = pa.unsqueeze(-2)
     elif kind == "capsule_capsule":
-        p0, p1 = _segment(pa, qa, sa)
-        q0, q1 = _segment(pb, qb, sb)
+        p0, p1 = _segment(pa, rot_a, sa)
+        q0, q1 = _segment(pb, rot_b, sb)
         ca, cb = _segments_closest(p0, p1, q0, q1)
         pt, n, d = _sphere_sphere(ca, sa[0], cb, sb[0])
         return pt.unsqueeze(-2), n.unsqueeze(-2), d.unsqueeze(-2)
     else:  # capsule_box
-        p0, p1 = _segment(pa, qa, sa)
+        p0, p1 = _segment(pa, rot_a, sa)
         centres = torch.stack((p0, p1, _closest_on_segment(p0, p1, pb)), -2)
     ra = sa[0].unsqueeze(-2)
     if kind.endswith("_sphere"):
         return _sphere_sphere(centres, ra, pb.unsqueeze(-2), sb[0].unsqueeze(-2))
     if kind.endswith("_capsule"):
-        q0, q1 = _segment(pb, qb, sb)
+        q0, q1 = _segment(pb, rot_b, sb)
         nearest = _closest_on_segment(q0.unsqueeze(-2), q1.unsqueeze(-2), centres)
         return _sphere_sphere(centres, ra, nearest, sb[0].unsqueeze(-2))
-    return _point_box(centres, ra, pb.unsqueeze(-2), qb.unsqueeze(-2), sb.unsqueeze(-2))
+    return _point_box(centres, ra, pb.unsqueeze(-2), rot_b.unsqueeze(-2), sb.unsqueeze(-2))
 
 
 def _on_world(group) -> bool:
@@ -153,26 +157,30 @@ def _on_world(group) -> bool:
     return group.kind.endswith("_plane")
 
 
-def contacts(sys: System, bodies: Bodies) -> Contacts:
-    """Evaluate every candidate contact point of the model at the given ext body poses (lanes ``Bodies``)."""
-    geom_pos, geom_quat = lanes.param(sys.geom_pos, 1, 1), lanes.param(sys.geom_quat, 1, 1)
-    geom_size = lanes.param(sys.geom_size, 1, 1)
+def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Contacts:
+    """Evaluate every candidate contact point of the model at the given ext body poses (lanes ``Bodies``);
+    ``rot (3, 3, N + 1, B)``: the bodies' rotation matrices where the caller has them (default: built from
+    ``bodies.x_quat``)."""
+    rot = math.quat_to_mat(bodies.x_quat) if rot is None else rot
+    geom_pos, geom_size = lanes.param(sys.geom_pos, 1, 1), lanes.param(sys.geom_size, 1, 1)
+    geom_rot = math.quat_to_mat(lanes.param(sys.geom_quat, 1, 1))
     pos, normal, depth, body_a, body_b, friction = [], [], [], [], [], []
     for group in sys.contact_groups:
         k = POINTS_PER_PAIR[group.kind]
         on_world = _on_world(group)
         geom = group.geom_a if on_world else torch.cat((group.geom_a, group.geom_b))  # moving sides' poses at once
         body = sys.geom_body[geom]
-        x, q = bodies.x_pos.index_select(-2, body), bodies.x_quat.index_select(-2, body)
-        world_pos = x + math.quat_rotate(q, geom_pos.index_select(-2, geom))
-        world_quat = math.quat_mul(q, geom_quat.index_select(-2, geom))
-        if on_world:  # the plane's pose is its geom frame: (3|4, P, 1)
+        frames = geom_rot if "box" in group.kind else geom_rot[:, 2:]  # capsules and planes need only their z axes
+        x, r = bodies.x_pos.index_select(-2, body), rot.index_select(-2, body)
+        world_pos = x + math.matvec(r, geom_pos.index_select(-2, geom))
+        world_rot = math.mm(r, frames.index_select(-2, geom))
+        if on_world:  # the plane's pose is its geom frame: (3, P, 1), (3, 3|1, P, 1)
             pos_a, pos_b = world_pos, geom_pos.index_select(-2, group.geom_b)
-            quat_a, quat_b = world_quat, geom_quat.index_select(-2, group.geom_b)
+            rot_a, rot_b = world_rot, frames.index_select(-2, group.geom_b)
         else:
-            (pos_a, pos_b), (quat_a, quat_b) = world_pos.chunk(2, -2), world_quat.chunk(2, -2)
+            (pos_a, pos_b), (rot_a, rot_b) = world_pos.chunk(2, -2), world_rot.chunk(2, -2)
         size_a, size_b = geom_size.index_select(-2, torch.cat((group.geom_a, group.geom_b))).chunk(2, -2)
-        pt, n, dist = _pair_contacts(group.kind, pos_a, quat_a, size_a, pos_b, quat_b, size_b)
+        pt, n, dist = _pair_contacts(group.kind, pos_a, rot_a, size_a, pos_b, rot_b, size_b)
         pos.append(pt.flatten(-3, -2))
         normal.append(n.flatten(-3, -2))
         depth.append((lanes.param(group.margin, 1).unsqueeze(-2) - dist).flatten(-3, -2))

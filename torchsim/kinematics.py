@@ -87,8 +87,8 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     zero in ``axes``, ``qd`` and ``hinge_dual``: a model without 2- and 3-hinge joints then skips the zero frame's
     axes a2, a3, which only xpbd's position solve reads. Work for joint kinds absent from the model is skipped
     (``sys.jnt_kinds``, static). ``rot (3, 3, N + 1, B)``: the bodies' rotation matrices where the caller has them
-    (default: built from ``bodies.x_quat``); body-fixed vectors turn through them, at half a quaternion rotation's
-    cost.
+    (default: built for the joints' bodies from ``bodies.x_quat``); body-fixed vectors turn through them, at half a
+    quaternion rotation's cost.
     """
 
     def sel(t):
@@ -100,8 +100,10 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     weld, one, two, three, _ = sys.jnt_kinds
     xp, qp, vp, wp = (t.index_select(-2, sel(sys.jnt_parent)) for t in bodies)
     xc, qc, vc, wc = (t.index_select(-2, sel(sys.jnt_child)) for t in bodies)
-    rot = math.quat_to_mat(bodies.x_quat) if rot is None else rot
-    rot_p, rot_c = rot.index_select(-2, sel(sys.jnt_parent)), rot.index_select(-2, sel(sys.jnt_child))
+    if rot is None:
+        rot_p, rot_c = math.quat_to_mat(qp), math.quat_to_mat(qc)
+    else:
+        rot_p, rot_c = rot.index_select(-2, sel(sys.jnt_parent)), rot.index_select(-2, sel(sys.jnt_child))
     quat0_p = const(sys.jnt_quat0, 1, 1)  # zero frame of the child, in the parent's frame
     quat0 = math.quat_mul(qp, quat0_p)  # ... and in the world
     r_parent = math.matvec(rot_p, const(sys.jnt_anchor_parent, 1, 1))

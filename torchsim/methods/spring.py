@@ -103,11 +103,13 @@ def limit_forces(sys: System, q: torch.Tensor, qd: torch.Tensor, w: torch.Tensor
     return torch.where(lanes.param(sys.dof_limited, 1) & (violation != 0), -k * violation - c * qd, 0.0)
 
 
-def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: float) -> Bodies:
-    """Velocity impulses stopping approach and separating at ``depth / contact_timeconst``, Coulomb-capped friction.
+def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: float,
+                     rot: torch.Tensor | None = None) -> Bodies:
+    """Velocity impulses stopping approach and separating at ``depth / contact_timeconst``, Coulomb-capped friction;
+    ``rot``: the bodies' rotation matrices, if at hand (``collision.contacts``).
 
     Per contact, vectors are ``(3, C, B)`` and scalars ``(C, B)``."""
-    con = contacts(sys, bodies)
+    con = contacts(sys, bodies, rot)
     a, b = con.body_a, con.body_b
     r_a, r_b, v_rel = rigid.contact_arms(bodies, a, b, con.pos)
     v_n = math.dot(v_rel, con.normal)
@@ -175,5 +177,5 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     after = integrator.velocity_update(sys, bodies, inv, force + spring_force, torque + spring_torque, h)
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
     if sys.contact_groups:
-        after = contact_impulses(sys, after, terms.loaded, h)
+        after = contact_impulses(sys, after, terms.loaded, h, inv.rot)  # poses not yet moved: the substep's rot
     return integrator.integrate_positions(after, h)
