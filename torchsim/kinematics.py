@@ -185,12 +185,13 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     # slides: the anchor offset in the zero frame, mapped onto the slide axes
     if sys.jnt_has_slides:
         slide_pinv = const(sys.jnt_slide_pinv, 1, 2)
-        d_zero = math.quat_rotate_inv(quat0, delta)
-        dd_zero = math.quat_rotate_inv(
-            quat0, (vc + math.cross(wc, r_child)) - (vp + math.cross(wp, r_parent)) - math.cross(wp, delta))
+        rot0_t = math.transpose(rot0)
+        d_zero = math.matvec(rot0_t, delta)
+        dd_zero = math.matvec(
+            rot0_t, (vc + math.cross(wc, r_child)) - (vp + math.cross(wp, r_parent)) - math.cross(wp, delta))
         q_slide = math.matvec(slide_pinv, d_zero)
         qd_slide = math.matvec(slide_pinv, dd_zero)
-        slide_axes = math.quat_rotate(quat0.unsqueeze(-2), const(sys.jnt_slide_axes, 2, 1))
+        slide_axes = math.matvec(rot0.unsqueeze(-2), const(sys.jnt_slide_axes, 2, 1))
     else:
         q_slide = qd_slide = zero3
         slide_axes = torch.zeros_like(hinge_axes)
