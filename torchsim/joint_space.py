@@ -10,7 +10,7 @@ whose inertia includes the armature.
 import torch
 
 from torchsim import lanes, math, rigid
-from torchsim.kinematics import Bodies, JointFrames, dof_values
+from torchsim.kinematics import Bodies, JointFrames, dof_hinge_rows, dof_values
 from torchsim.system import System
 
 
@@ -43,12 +43,9 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     tables ``sys.body_hinge_*``), so building ``A`` costs ``sum_b K_b^2`` products (``K_b`` hinges on body ``b``),
     not ``N D^2``. Returns bodies and every dof's rate ``(D, B)`` (slides 0).
     """
-    joint = sys.dof_flat // 6
-    slot = (sys.dof_flat % 6 - 3).clamp_min(0)
-    child, parent = sys.jnt_child[joint], sys.jnt_parent[joint]
+    child, parent = rigid.dof_bodies(sys)
     hinge = lanes.param(sys.dof_is_hinge, 1)
-    # row ``slot`` of the joint's hinge_dual: moving the row axis next to the joint axis gathers both in one index
-    u = torch.where(hinge, math.transpose(frames.hinge_dual)[:, slot, joint], 0.0)  # (3, D, B)
+    u = torch.where(hinge, dof_hinge_rows(sys, frames), 0.0)  # (3, D, B)
     n_dof, batch = u.shape[-2], u.shape[-1]
     if n_dof == 0:
         return bodies, u.new_zeros(u.shape[1:])

@@ -218,6 +218,15 @@ def dof_values(sys: System, per_joint: torch.Tensor) -> torch.Tensor:
     return per_joint.flatten(-3, -2).index_select(-2, sys.dof_flat)
 
 
+def dof_hinge_rows(sys: System, frames: JointFrames) -> torch.Tensor:
+    """Each dof's row of its joint's ``hinge_dual`` ``(3, D, B)``: the world direction that maps the joint's relative
+    rotation rate onto the dof (a single hinge's axis); meaningful for hinge dofs."""
+    joint = sys.dof_flat // 6
+    slot = (sys.dof_flat % 6 - 3).clamp_min(0)
+    # moving the row axis next to the joint axis gathers both in one index
+    return math.transpose(frames.hinge_dual)[:, slot, joint]
+
+
 def _addresses(start: torch.Tensor, width: int) -> torch.Tensor:
     """qpos/qvel addresses ``(width * K,)`` of the ``width`` consecutive values at each of ``start (K,)``, ordered
     component-major like the rows of a lanes block ``(width, K, B)`` flattened."""
