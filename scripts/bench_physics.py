@@ -63,6 +63,9 @@ def parse_args(argv=None):
     p.add_argument("--part-size", type=int, default=512,
                    help="torchsim.compile_substeps(part_size=...): CPU batches run as parts of at most this many envs "
                         "on one thread per core (0: one part)")
+    p.add_argument("--no-rows", action="store_true",
+                   help="torchsim.compile_substeps(rows=False): the spring substeps as inductor's loop nests in one "
+                        "compiled loop, not a compiled row graph (torchsim.rows)")
     p.add_argument("--compile-style", choices=["closure", "arg"], default="closure",
                    help="'closure': compile lambda s, c: step(sys, s, c); 'arg': compile step itself, sys as argument")
     p.add_argument("--keep-inductor-cache", action="store_true",
@@ -281,7 +284,7 @@ def make_compiled(system):
     if ARGS.compile_scope == "substep":
         torch._dynamo.reset()  # a fresh compile per batch size, so that its compile time is measured
         torchsim.compile_substeps(dynamic=False, vectorize=not ARGS.scalar, cpp_wrapper=not ARGS.no_cpp_wrapper,
-                                  part_size=ARGS.part_size)
+                                  part_size=ARGS.part_size, rows=not ARGS.no_rows)
         return (lambda s, c: torchsim.step(system, s, c)), (lambda: torchsim.compile_substeps(False))
     if ARGS.compile_style == "closure":
         fn = torch.compile(lambda s, c: torchsim.step(system, s, c), fullgraph=True, dynamic=False)

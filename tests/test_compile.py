@@ -2,8 +2,8 @@
 
 Compiling takes minutes per graph on 2 cores, so this file traces one small model (a hinged arm that hits the
 floor, and a falling box; 2 substeps) with dynamo for both methods (one graph, no breaks) and compiles it with
-inductor for the default method only, checking 20 steps against eager mode in float32; then once more as
-``compile_substeps`` runs it, in parts on two threads.
+inductor for the default method only, checking 20 steps against eager mode in float32; then twice more as
+``compile_substeps`` runs it: as a row graph (the default for spring on CPU), and in parts on two threads.
 """
 
 import pytest
@@ -61,30 +61,56 @@ def test_compiled_step_matches_eager(method="spring"):
     assert not state.diverged.any()
 
 
-def test_compiled_parts_on_threads_match_eager(method="spring"):
-    """``compile_substeps`` as the benchmarks run it: the compiled step (its substeps one loop), the batch cut into
-    parts that two threads step at once (``torchsim.parts``; 4 parts of 2 here), joined. Same numbers as one eager
-    whole-batch step."""
-    torch._dynamo.reset()
-    sys, state, ctrl = _setup(method)
-    eager = [state]
-    for _ in range(5):
-        eager.append(torchsim.step(sys, eager[-1], ctrl))
-    torchsim.compile_substeps(part_size=2, workers=2)
+def _compiled_steps(sys, state, ctrl, steps=5, **options):
+    """``steps`` steps under ``compile_substeps(**options)`` (the first compiles), and the number of graphs
+    dynamo compiled for them."""
+    torch.compiler.reset()
+    pipeline._ROW_GRAPHS.clear()
+    torchsim.compile_substeps(**options)
     graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
     try:
-        assert parts.part_sizes(state) == [2, 2, 2, 2]
         compiled = [state]
         with torch.no_grad():  # as collectors step envs
-            for _ in range(5):  # the first step compiles (parts one after another), the others run on two threads
+            for _ in range(steps):
                 compiled.append(torchsim.step(sys, compiled[-1], ctrl))
     finally:
         torchsim.compile_substeps(False)
-    assert torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs == 1  # the step, its substeps a loop
-    worst = max((a - b).abs().max().item() for e, c in zip(eager, compiled) for a, b in zip(e[:6], c[:6]))
-    print(f"{method}: max |eager - compiled in parts| over 5 steps {worst:.2e}")
-    assert worst < 1e-4  # float32 rounding, grown over 5 steps (one step: 1e-5, test above)
+    return compiled, torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs
+
+
+def _worst_vs_eager(sys, compiled, ctrl):
+    eager = [compiled[0]]
+    for _ in compiled[1:]:
+        eager.append(torchsim.step(sys, eager[-1], ctrl))
     assert not compiled[-1].diverged.any()
+    return max((a - b).abs().max().item() for e, c in zip(eager, compiled) for a, b in zip(e[:6], c[:6]))
+
+
+def test_compiled_row_graph_matches_eager(method="spring"):
+    """``compile_substeps()`` as the benchmarks run it on CPU: the step's terms and end compiled by dynamo (two
+    graphs), the substep as a row graph (``torchsim.rows``) compiled by inductor alone and called once per
+    substep. Same numbers as the eager step; the row graph is built once for all five steps."""
+    sys, state, ctrl = _setup(method)
+    compiled, graphs = _compiled_steps(sys, state, ctrl)
+    assert graphs == 2 and len(pipeline._ROW_GRAPHS) == 1
+    worst = _worst_vs_eager(sys, compiled, ctrl)
+    print(f"{method}: max |eager - compiled row graph| over 5 steps {worst:.2e}")
+    assert worst < 1e-4  # float32 rounding, grown over 5 steps (one step: 1e-5, test above)
+
+
+def test_compiled_parts_on_threads_match_eager(method="spring"):
+    """``compile_substeps(rows=False)``: the compiled step (its substeps one loop), the batch cut into parts that two
+    threads step at once (``torchsim.parts``; 4 parts of 2 here), joined. Same numbers as one eager whole-batch
+    step."""
+    sys, state, ctrl = _setup(method)
+    parts.PARTS.set(2, 2)
+    assert parts.part_sizes(state) == [2, 2, 2, 2]
+    # the first step compiles (parts one after another), the others run on two threads
+    compiled, graphs = _compiled_steps(sys, state, ctrl, part_size=2, workers=2, rows=False)
+    assert graphs == 1  # the step, its substeps a loop
+    worst = _worst_vs_eager(sys, compiled, ctrl)
+    print(f"{method}: max |eager - compiled in parts| over 5 steps {worst:.2e}")
+    assert worst < 1e-4
 
 
 def test_steps_recording_gradients_run_eagerly(method="spring"):

@@ -93,7 +93,10 @@ def _point_box(x, r, box_pos, box_rot, half):
     outside = outside_vec.abs().amax(0) > 0
     # inside: leave through the nearest face
     face_gap = half - local.abs()
-    axis = torch.nn.functional.one_hot(face_gap.argmin(0), 3).movedim(-1, 0).to(x.dtype)
+    gap_x, gap_y, gap_z = face_gap.unbind(0)  # the first smallest, as argmin picks, without a gather
+    nearest_x = (gap_x <= gap_y) & (gap_x <= gap_z)
+    nearest_y = ~nearest_x & (gap_y <= gap_z)
+    axis = torch.stack([nearest_x, nearest_y, ~(nearest_x | nearest_y)]).to(x.dtype)
     in_normal = axis * torch.where(local >= 0, 1.0, -1.0)
     normal_local = torch.where(outside, outside_vec / out_dist, in_normal)
     dist = torch.where(outside, out_dist, -(face_gap * axis).sum(0)) - r

@@ -13,6 +13,9 @@ uses few library kernels (``linalg.cross``, constant-table products); under ``to
 written per component, which inductor fuses into elementwise loops over the batch.
 """
 
+import contextlib
+import contextvars
+
 import torch
 
 
@@ -76,8 +79,21 @@ def eye3(like: torch.Tensor, trailing: int) -> torch.Tensor:
     return _trailing(_table("eye3", like), trailing)
 
 
+_COMPONENT_FORMULAS = contextvars.ContextVar("component_formulas", default=False)
+
+
 def _compiling() -> bool:
-    return torch.compiler.is_compiling()
+    return torch.compiler.is_compiling() or _COMPONENT_FORMULAS.get()
+
+
+@contextlib.contextmanager
+def component_formulas():
+    """Use the per-component formulas outside ``torch.compile`` too (``torchsim.rows`` traces them)."""
+    token = _COMPONENT_FORMULAS.set(True)
+    try:
+        yield
+    finally:
+        _COMPONENT_FORMULAS.reset(token)
 
 
 def cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

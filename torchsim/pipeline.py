@@ -5,16 +5,19 @@ converts the bodies on entry and ``finish`` converts them back.
 """
 
 import functools
+import threading
 import warnings
 
 import torch
+import torch.utils._pytree as pytree
 from torch._higher_order_ops.while_loop import while_loop
 
-from torchsim import lanes, parts
+from torchsim import lanes, parts, rows
 from torchsim.kinematics import Bodies, forward, joint_frames, read_q, with_world
 from torchsim.methods import spring, xpbd
 from torchsim.state import State
-from torchsim.system import System
+from torchsim.system import BATCHABLE_RANK, System
+
 
 def _check(sys: System, name: str, x: torch.Tensor, width: int, batch: int | None = None) -> None:
     if not isinstance(x, torch.Tensor):
@@ -50,13 +53,16 @@ def public_poses(sys: System, bodies: Bodies) -> list[torch.Tensor]:
 def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
     """Advance every env by ``sys.timestep`` under controls ``ctrl (B, nu)`` (``sys.substeps`` substeps).
 
-    After ``compile_substeps()``, the step runs compiled, and a CPU batch is stepped as parts of a few hundred envs
-    on worker threads (``torchsim.parts``), with the same results."""
+    After ``compile_substeps()``, the step runs compiled: a spring step on CPU as a row graph (``torchsim.rows``)
+    over the whole batch, other steps with a CPU batch as parts of a few hundred envs on worker threads
+    (``torchsim.parts``); the results are the same."""
     _check(sys, "ctrl", ctrl, sys.nu, state.x_pos.shape[0])
     run, compiled = _substeps, _STEP["compiled"]
     if compiled is not None:
         if _records_grad(sys, state, ctrl):
             _warn_eager_for_grad()
+        elif "rows" in compiled and sys.method in ROWS and _rows_supported(sys) and not torch.compiler.is_compiling():
+            return compiled["rows"](sys, state, ctrl)  # one part: the row graph's loop runs on every thread
         else:
             run = compiled["loop" if LOOPED[sys.method] else "calls"]
     sizes = parts.part_sizes(state)
@@ -76,9 +82,8 @@ def _substeps(sys: System, state: State, ctrl: torch.Tensor, calls: dict | None 
     """
     calls = calls or _EAGER_CALLS
     h = sys.timestep / sys.substeps
-    bodies = with_world(*(lanes.to_lanes(x, 1) for x in state[:4]))
-    ctrl = lanes.to_lanes(ctrl).contiguous()
-    terms = STEP_TERMS[sys.method](sys, bodies, h)
+    bodies, ctrl = _to_lanes(state, ctrl)
+    terms = calls["terms"](sys, bodies, h)
     substep = calls[sys.method]
     if torch.compiler.is_compiling() and not _records_grad(sys, state, ctrl):
         def body(i, *b):
@@ -90,6 +95,38 @@ def _substeps(sys: System, state: State, ctrl: torch.Tensor, calls: dict | None 
         for _ in range(sys.substeps):
             bodies = substep(sys, bodies, ctrl, terms, h)
     return calls["finish"](sys, state, bodies)
+
+
+def _to_lanes(state: State, ctrl: torch.Tensor) -> tuple[Bodies, torch.Tensor]:
+    return with_world(*(lanes.to_lanes(x, 1) for x in state[:4])), lanes.to_lanes(ctrl).contiguous()
+
+
+def _row_substeps(options: dict, calls: dict, sys: System, state: State, ctrl: torch.Tensor) -> State:
+    """``_substeps`` with the substep a row graph (``torchsim.rows``, compiled with inductor ``options``) that
+    Python calls once per substep; ``calls``: the compiled step terms and step end. The poses travel between
+    substeps as one ``(rows, B)`` tensor, the graph's one output."""
+    h = sys.timestep / sys.substeps
+    bodies, ctrl = _to_lanes(state, ctrl)
+    inputs, spec = pytree.tree_flatten((ctrl, calls["terms"](sys, bodies, h)))
+    nones = [x is None for x in inputs]
+    given = [x.contiguous() for x in inputs if x is not None]  # the layout the graph is compiled for
+    shapes = [x.shape for x in bodies]
+
+    def substep_of_rows(poses, *given):
+        leaves = iter(given)
+        ctrl, terms = pytree.tree_unflatten([None if none else next(leaves) for none in nones], spec)
+        new = SUBSTEP[sys.method](sys, Bodies(*_split_poses(poses, shapes)), ctrl, terms, h)
+        return torch.cat([x.reshape(-1, x.shape[-1]) for x in new])
+
+    poses = torch.cat([x.reshape(-1, x.shape[-1]) for x in bodies])
+    substep = _row_graph(options, sys, substep_of_rows, [poses, *given])
+    for _ in range(sys.substeps):
+        poses = substep(poses, *given)
+    return calls["finish"](sys, state, Bodies(*_split_poses(poses, shapes)))
+
+
+def _split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
+    return [x.view(shape) for x, shape in zip(poses.split([shape[:-1].numel() for shape in shapes]), shapes)]
 
 
 def _records_grad(sys: System, state: State, ctrl: torch.Tensor) -> bool:
@@ -130,19 +167,67 @@ def contain_divergence(sys: System, old: State, new: State) -> State:
 #: step with per-substep calls it runs eagerly).
 SUBSTEP = {"spring": spring.substep, "xpbd": xpbd.substep}
 STEP_TERMS = {"spring": spring.step_terms, "xpbd": xpbd.step_terms}
-_EAGER_CALLS = SUBSTEP | {"finish": finish}
+
+
+def _step_terms(sys: System, bodies: Bodies, h: float):
+    return STEP_TERMS[sys.method](sys, bodies, h)
+
+
+_EAGER_CALLS = SUBSTEP | {"finish": finish, "terms": _step_terms}
+#: Methods whose compiled CPU substep is a row graph (``torchsim.rows``) under ``compile_substeps(rows=True)``: one
+#: loop over the batch instead of ~140 loop nests (``docs/benchmarks.md``,
+#: speed pass 9). xpbd's substep is larger; its row graph was not tried.
+ROWS = {"spring"}
+#: Compiled row-graph substeps by (System key, input shapes), each with the System it baked in (kept alive, see
+#: ``rows.system_key``); the oldest is dropped beyond ``ROW_GRAPHS_KEPT``.
+_ROW_GRAPHS: dict[tuple, tuple] = {}
+ROW_GRAPHS_KEPT = 8
+_ROW_LOCK = threading.Lock()
+
+
+def _rows_supported(sys: System) -> bool:
+    """Row graphs bake the System in: they serve CPU models whose parameters are shared by every env."""
+    batched = any(getattr(sys, name).ndim > rank for name, rank in BATCHABLE_RANK.items()) or any(
+        g.friction.ndim > 1 or g.margin.ndim > 1 for g in sys.contact_groups)
+    return sys.device.type == "cpu" and not batched
+
+
+def _row_graph(options: dict, sys: System, substep, args: list):
+    """``substep`` (of ``sys``'s method, as a function of the tensors ``args``) as a compiled row graph for inputs
+    like ``args``; built on first use for this System's values and these shapes."""
+    key = (rows.system_key(sys), tuple((x.shape, x.dtype) for x in args))
+    entry = _ROW_GRAPHS.get(key)
+    if entry is None:
+        with _ROW_LOCK:  # steps on several threads: one builds it
+            entry = _ROW_GRAPHS.get(key)
+            if entry is None:
+                entry = _ROW_GRAPHS[key] = (sys, rows.compile_row_graph(substep, args, options))
+                while len(_ROW_GRAPHS) > ROW_GRAPHS_KEPT:
+                    del _ROW_GRAPHS[next(iter(_ROW_GRAPHS))]
+    return entry[1]
+
+
 #: Whether ``compile_substeps`` compiles a method's step as one graph with its substeps in a loop (True) or
 #: compiles the substep and the step's end as calls from Python. xpbd's loop graph kept gcc busy for over 10
 #: minutes without finishing (spring's builds in ~2.5), so xpbd keeps the calls (``docs/benchmarks.md``, pass 6).
 LOOPED = {"spring": True, "xpbd": False}
 #: The compiled steps ``compile_substeps`` switched on (None: eager steps), and every set compiled so far.
 _STEP: dict[str, dict | None] = {"compiled": None}
-_COMPILED_STEP: dict[tuple[bool, bool, bool, bool], dict] = {}
+_COMPILED_STEP: dict[tuple[bool, ...], dict] = {}
 
 
 def compile_substeps(enabled: bool = True, dynamic: bool = False, vectorize: bool = True,
-                     cpp_wrapper: bool = True, part_size: int = 512, workers: int | None = None) -> None:
+                     cpp_wrapper: bool = True, part_size: int = 512, workers: int | None = None,
+                     rows: bool = True) -> None:
     """Make every later ``step`` run compiled (``torch.compile(fullgraph=True)``; ``enabled=False``: eager again).
+
+    ``rows=True`` (default): on CPU, with static shapes, a spring step whose System has no per-env parameters
+    runs its substep as a row graph (``torchsim.rows``: every small axis unrolled, the model's constants folded
+    in, one loop over the whole batch on every intra-op thread), compiled by inductor directly; a Python loop calls
+    it ``sys.substeps`` times between the compiled step terms and step end. A row graph belongs to one System's
+    values and one batch size: another System, a tensor of it edited in place, or another batch size builds and
+    compiles a new one (about 2 minutes for the ant; the last ``ROW_GRAPHS_KEPT`` are kept). Other cases keep the
+    paths below.
 
     For the methods in ``LOOPED`` (spring) the step compiles as one graph in which the substeps are a
     ``while_loop`` over one copy of the substep: it compiles in about 2.5 minutes on CPU (``substeps`` unrolled
@@ -175,11 +260,18 @@ def compile_substeps(enabled: bool = True, dynamic: bool = False, vectorize: boo
     """
     workers = torch.get_num_threads() if workers is None else workers
     parts.PARTS.set(part_size if enabled else 0, workers if enabled else 1)
-    options = ({"cpp_wrapper": cpp_wrapper} | ({} if vectorize else {"cpp.simdlen": 1})
-               | ({"cpp.threads": 1} if workers > 1 else {}))
-    key = (dynamic, vectorize, cpp_wrapper, workers > 1)
+    whole_options = {"cpp_wrapper": cpp_wrapper} | ({} if vectorize else {"cpp.simdlen": 1})
+    options = whole_options | ({"cpp.threads": 1} if workers > 1 else {})
+    key = (dynamic, vectorize, cpp_wrapper, workers > 1, rows)
     if enabled and key not in _COMPILED_STEP:  # torch.compile is lazy: each compiles on its first call
         compiled = functools.partial(torch.compile, fullgraph=True, dynamic=dynamic, options=options)
         calls = {name: compiled(fn) for name, fn in _EAGER_CALLS.items()}
-        _COMPILED_STEP[key] = {"loop": compiled(_substeps), "calls": functools.partial(_substeps, calls=calls)}
+        steps = {"loop": compiled(_substeps), "calls": functools.partial(_substeps, calls=calls)}
+        if rows and not dynamic:  # the whole batch at once, its kernels on every intra-op thread
+            whole = functools.partial(torch.compile, fullgraph=True, dynamic=False, options=whole_options)
+            # a row graph's ops all fuse into one loop: no cap on the size of a fused kernel; its buffers in one pool
+            graph_options = whole_options | {"max_fusion_size": 1 << 20, "memory_planning": True}
+            steps["rows"] = functools.partial(_row_substeps, graph_options, {"terms": whole(_step_terms),
+                                                                             "finish": whole(finish)})
+        _COMPILED_STEP[key] = steps
     _STEP["compiled"] = _COMPILED_STEP[key] if enabled else None

@@ -1,0 +1,78 @@
+"""Row graphs (``torchsim.rows``): the spring substep rewritten as ops on rows of envs gives the substep's numbers.
+
+Run eagerly here (building a row graph takes seconds, compiling one minutes); ``test_compile.py`` runs the compiled
+row-graph step as ``compile_substeps`` uses it.
+"""
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+import torch.utils._pytree as pytree
+
+import torchsim
+from models import ANT, F64, HUMANOID, random_q
+from torchsim import pipeline, rows
+from torchsim.kinematics import with_world
+from torchsim.lanes import to_lanes
+
+ASSETS = ANT.parent
+
+
+def _substep_inputs(path, batch=3, seed=0):
+    """A spring System and the flat lanes inputs of one substep: random poses (some below the floor, so contacts
+    act), velocities and controls."""
+    sys = torchsim.load_mjcf(str(path), dtype=F64)
+    m = mujoco.MjModel.from_xml_path(str(path))
+    rng = np.random.default_rng(seed)
+    q = torch.tensor(random_q(m, batch, rng))
+    state = torchsim.init(sys, q, torch.tensor(rng.normal(0, 1, (batch, sys.nv))))
+    bodies = with_world(*(to_lanes(x, 1) for x in state[:4]))
+    ctrl = to_lanes(torch.tensor(rng.uniform(-1, 1, (batch, sys.nu)))).contiguous()
+    h = sys.timestep / sys.substeps
+    leaves, spec = pytree.tree_flatten((bodies, ctrl, pipeline.STEP_TERMS["spring"](sys, bodies, h)))
+    return sys, leaves, spec, h
+
+
+@pytest.mark.parametrize("path", [ANT, HUMANOID, ASSETS / "grasp.xml", ASSETS / "fetch.xml"],
+                         ids=lambda p: p.stem)
+def test_row_graph_equals_substep(path):
+    """Hinges, 3-hinge and free joints, slides, capsule/sphere/box contacts: the row graph's new poses equal the
+    substep's to float64 rounding (the rewrite only reorders sums and folds constants)."""
+    sys, leaves, spec, h = _substep_inputs(path)
+
+    def substep(*flat):
+        bodies, ctrl, terms = pytree.tree_unflatten(list(flat), spec)
+        return tuple(pipeline.SUBSTEP["spring"](sys, bodies, ctrl, terms, h))
+
+    graph = rows.row_graph(substep, leaves)
+    ops = {n.target for n in graph.graph.nodes if n.op == "call_function"}
+    assert torch.ops.aten.index_select.default not in ops and torch.ops.aten.index_add.default not in ops
+    expected, got = substep(*leaves), graph(*leaves)
+    worst = max((a - b).abs().max().item() for a, b in zip(expected, got))
+    moved = max((a - b).abs().max().item() for a, b in zip(expected, leaves[:4]))
+    print(f"{path.stem}: {len(graph.graph.nodes)} nodes, max |row graph - substep| {worst:.1e}, moved {moved:.1e}")
+    assert moved > 1e-4 and worst < 1e-11
+
+
+def test_system_key_follows_values():
+    """A row graph bakes the System in, so its key changes when a tensor of it is edited in place or replaced."""
+    sys = torchsim.load_mjcf(str(ANT), dtype=F64)
+    key = rows.system_key(sys)
+    assert rows.system_key(sys.replace()) == key  # a copy sharing the tensors: the same graph serves it
+    assert rows.system_key(sys.replace(body_mass=sys.body_mass.clone())) != key
+    sys.contact_groups[0].friction.mul_(0.5)
+    assert rows.system_key(sys) != key
+
+
+def test_row_graphs_refuse_the_batch_axis():
+    """Ops along the batch axis cannot be unrolled: a clear error, not a wrong graph."""
+    with pytest.raises(NotImplementedError, match="batch axis"):
+        rows.row_graph(lambda x: (x.sum(-1, keepdim=True).expand(3, 4),), [torch.ones(3, 4)])
+
+
+def test_batched_systems_keep_the_loop():
+    """Per-env parameters cannot be baked into a graph: such Systems take the compiled loop, not a row graph."""
+    sys = torchsim.load_mjcf(str(ANT))
+    assert pipeline._rows_supported(sys)
+    assert not pipeline._rows_supported(sys.replace(body_mass=sys.body_mass.expand(4, -1)))

@@ -1,0 +1,397 @@
+"""Row graphs: a lanes-layout function rewritten so that every op acts on one row of ``B`` envs.
+
+In the lanes layout (``torchsim.lanes``) a tensor is ``(*S, B)``: a few small static axes ``S`` (components,
+bodies, joints) in front of the batch. Compiled as it is, inductor runs each op as a loop nest over ``S`` and ``B``
+and keeps ~120 intermediate buffers per substep in memory, allocated on every call (``docs/benchmarks.md``, speed
+pass 9). A row graph unrolls ``S``: each tensor becomes an array of ``(B,)`` rows, so gathers, concatenations,
+index sums and views become bookkeeping at trace time, and the model's constants fold into the arithmetic (a joint
+mode of 0 removes the terms it multiplies). What is left is elementwise ops on rows, which inductor fuses into a
+single loop over the batch whose intermediates stay in registers and on the stack.
+
+The System's tensors are baked into the graph as constants, so a row graph belongs to one System's values:
+:func:`system_key` says when it must be rebuilt. Shapes must be static; batched (per-env) System parameters are not
+supported (``torchsim.pipeline`` keeps its loop-nest code for those).
+"""
+
+import math
+import operator
+
+import numpy as np
+import torch
+from torch.fx import GraphModule, Interpreter
+from torch.fx.experimental.proxy_tensor import disable_proxy_modes_tracing, make_fx
+
+from torchsim import math as tmath
+
+aten = torch.ops.aten
+
+
+def _cell(value) -> np.ndarray:
+    """A 0-d object array holding ``value`` (``np.array`` would try to iterate a tensor)."""
+    out = np.empty((), dtype=object)
+    out[()] = value
+    return out
+
+
+def _is_num(x) -> bool:
+    return isinstance(x, (bool, int, float))
+
+
+def _map(fn, *arrays) -> np.ndarray:
+    """``fn`` over the broadcast elements of object arrays."""
+    arrays = [a if isinstance(a, np.ndarray) else _cell(a) for a in arrays]
+    shape = np.broadcast_shapes(*(a.shape for a in arrays))
+    arrays = [np.broadcast_to(a, shape) for a in arrays]
+    out = np.empty(shape, dtype=object)
+    for idx in np.ndindex(shape):
+        out[idx] = fn(*(a[idx] for a in arrays))
+    return out
+
+
+class Rows:
+    """A lanes tensor ``(*S, B)`` as an object array of shape ``S`` whose elements are rows: ``(B,)`` or ``(1,)``
+    tensors, or Python numbers where the value is a model constant."""
+
+    def __init__(self, cells: np.ndarray):
+        self.cells = cells
+
+
+# Element ops. Python numbers are constants: ops on them fold, and 0 and 1 simplify products and sums (the
+# structural zeros of a model, e.g. a hinge's unused axes, drop out of the graph).
+def _mul(a, b):
+    if _is_num(a) and not _is_num(b):
+        a, b = b, a
+    if _is_num(b) and not _is_num(a):
+        return 0.0 if b == 0 and not isinstance(b, bool) else a if b == 1 else -a if b == -1 else a * b
+    return a * b
+
+
+def _add(a, b, alpha=1):
+    b = _mul(b, alpha) if alpha != 1 else b
+    if _is_num(a) and a == 0:
+        return b
+    return a if _is_num(b) and b == 0 else a + b
+
+
+def _sub(a, b, alpha=1):
+    b = _mul(b, alpha) if alpha != 1 else b
+    if _is_num(b) and b == 0:
+        return a
+    return -b if _is_num(a) and a == 0 else a - b
+
+
+def _div(a, b):
+    if _is_num(b) and b == 1:
+        return a
+    return 0.0 if _is_num(a) and a == 0 and not _is_num(b) else a / b
+
+
+def _unary(on_number, on_row):
+    return lambda a: on_number(a) if _is_num(a) else on_row(a)
+
+
+def _where(cond, a, b):
+    if _is_num(cond):
+        return a if cond else b
+    return a if _is_num(a) and _is_num(b) and a == b else torch.where(cond, a, b)
+
+
+def _clamp(a, lo=None, hi=None):
+    if _is_num(a):
+        return min(max(a, -math.inf if lo is None else lo), math.inf if hi is None else hi)
+    return torch.clamp(a, lo, hi)
+
+
+def _binary(on_numbers, on_rows):
+    """An op that needs rows on both sides: a number meeting a row is made a full row."""
+    def op(a, b):
+        if _is_num(a) and _is_num(b):
+            return on_numbers(a, b)
+        a = torch.full_like(b, a) if _is_num(a) else a
+        return on_rows(a, b if not _is_num(b) else torch.full_like(a, b))
+    return op
+
+
+def _and(a, b):
+    if _is_num(a) or _is_num(b):
+        a, b = (a, b) if _is_num(a) else (b, a)
+        return b if a else False
+    return a & b
+
+
+def _to(a, dtype):
+    if _is_num(a):
+        return float(a) if dtype.is_floating_point else bool(a) if dtype == torch.bool else int(a)
+    return a.to(dtype)
+
+
+ELEMENTWISE = {
+    aten.mul.Tensor: _mul, aten.add.Tensor: _add, aten.sub.Tensor: _sub, aten.div.Tensor: _div,
+    aten.rsub.Scalar: lambda a, b, alpha=1: _sub(b, a, alpha),
+    aten.neg.default: _unary(operator.neg, torch.neg),
+    aten.rsqrt.default: _unary(lambda a: 1 / math.sqrt(a), torch.rsqrt),
+    aten.sqrt.default: _unary(math.sqrt, torch.sqrt),
+    aten.reciprocal.default: _unary(lambda a: 1 / a, torch.reciprocal),
+    aten.relu.default: _unary(lambda a: max(a, 0.0), torch.relu),
+    aten.cos.default: _unary(math.cos, torch.cos),
+    aten.sin.default: _unary(math.sin, torch.sin),
+    aten.where.self: _where,
+    aten.clamp.default: _clamp,
+    aten.clamp_min.default: lambda a, lo: _clamp(a, lo),
+    aten.minimum.default: _binary(min, torch.minimum),
+    aten.maximum.default: _binary(max, torch.maximum),
+    aten.atan2.default: _binary(math.atan2, torch.atan2),
+    aten.gt.Scalar: operator.gt, aten.gt.Tensor: operator.gt,
+    aten.ne.Scalar: operator.ne, aten.ne.Tensor: operator.ne,
+    aten.bitwise_and.Tensor: _and,
+    aten._to_copy.default: lambda a, dtype=None, **_: _to(a, dtype),
+}
+
+
+def _pointwise(op):
+    """Any other pointwise aten op, per element: on numbers alone it folds, otherwise numbers in Tensor arguments
+    become 0-d tensors (Scalar arguments keep them)."""
+    takes_tensor = [isinstance(a.type, torch.TensorType) for a in op._schema.arguments]
+
+    def fn(*xs, **kwargs):
+        rows = [x for x in xs if isinstance(x, torch.Tensor)]
+        dtype = rows[0].dtype if rows else torch.float64
+        args = [torch.tensor(x, dtype=dtype) if _is_num(x) and tensor else x for x, tensor in zip(xs, takes_tensor)]
+        if not rows:
+            with disable_proxy_modes_tracing():
+                return op(*args, **kwargs).item()
+        return op(*args, **kwargs)
+    return fn
+
+
+class _RowInterpreter(Interpreter):
+    """Runs an aten graph of lanes tensors on :class:`Rows`; ops on constants alone run as they are (folding)."""
+
+    def cells(self, x) -> np.ndarray:
+        if isinstance(x, Rows):
+            return x.cells
+        if x is None or _is_num(x):
+            return _cell(x)
+        if x.ndim == 0:
+            return _cell(x.item())
+        if x.shape[-1] == 1:  # a constant (*S, 1): numbers
+            values = x[..., 0]
+            return np.array(values.tolist(), dtype=object).reshape(values.shape) if values.ndim else _cell(
+                values.item())
+        # a constant with a batch axis (e.g. zeros made batch-sized for a stack): rows, or numbers where a row is
+        # one value repeated, so that it folds like any other constant
+        rows = x.reshape(-1, x.shape[-1]).unbind(0)
+        with disable_proxy_modes_tracing():
+            flat = x.reshape(-1, x.shape[-1])
+            uniform = (flat == flat[:, :1]).all(1).tolist()
+            firsts = flat[:, 0].tolist()
+        out = np.empty(len(rows), dtype=object)
+        out[:] = [first if same else row for row, same, first in zip(rows, uniform, firsts)]
+        return out.reshape(x.shape[:-1])
+
+    def run_node(self, node):
+        if node.op != "call_function":
+            return super().run_node(node)
+        args, kwargs = self.fetch_args_kwargs_from_env(node)
+        if node.target is operator.getitem:
+            return args[0][args[1]]
+        flat = [y for x in (*args, *kwargs.values()) for y in (x if isinstance(x, (list, tuple)) else [x])]
+        if not any(isinstance(x, Rows) for x in flat):
+            with disable_proxy_modes_tracing():
+                return node.target(*args, **kwargs)
+        if node.target in ELEMENTWISE or torch.Tag.pointwise in node.target.tags:
+            fn = ELEMENTWISE.get(node.target) or _pointwise(node.target)
+            tensors = [self.cells(a) for a in args]
+            return Rows(_map(lambda *xs: fn(*xs, **kwargs), *tensors))
+        handler = getattr(self, "_op_" + node.target.__name__.replace(".", "_"), None)
+        if handler is None:
+            raise NotImplementedError(f"row graphs do not support {node.target}")
+        return handler(tuple(node.meta["val"].shape) if isinstance(node.meta.get("val"), torch.Tensor) else None,
+                       *args, **kwargs)
+
+    def _axis(self, cells: np.ndarray, dim: int, extra: int = 0) -> int:
+        """The small axis that tensor dim ``dim`` names (rank ``cells.ndim + 1``, plus ``extra`` new axes)."""
+        axis = dim % (cells.ndim + 1 + extra)
+        if axis > cells.ndim - 1 + extra:
+            raise NotImplementedError("row graphs cannot act along the batch axis")
+        return axis
+
+    def _take(self, cells, index):
+        out = cells[index]
+        return Rows(out if isinstance(out, np.ndarray) else _cell(out))
+
+    def _op_select_int(self, shape, x, dim, i):
+        c = self.cells(x)
+        return self._take(c, (slice(None),) * self._axis(c, dim) + (i,))
+
+    def _op_unbind_int(self, shape, x, dim=0):
+        c = self.cells(x)
+        axis = self._axis(c, dim)
+        return [self._take(c, (slice(None),) * axis + (i,)) for i in range(c.shape[axis])]
+
+    def _op_slice_Tensor(self, shape, x, dim=0, start=None, end=None, step=1):
+        c = self.cells(x)
+        return self._take(c, (slice(None),) * self._axis(c, dim) + (slice(start, end, step),))
+
+    def _op_split_Tensor(self, shape, x, size, dim=0):
+        c = self.cells(x)
+        n = c.shape[self._axis(c, dim)]
+        return [self._op_slice_Tensor(None, x, dim, s, min(s + size, n)) for s in range(0, n, size)]
+
+    def _op_split_with_sizes_default(self, shape, x, sizes, dim=0):
+        starts = np.cumsum([0, *sizes]).tolist()
+        return [self._op_slice_Tensor(None, x, dim, a, b) for a, b in zip(starts, starts[1:])]
+
+    def _op_index_select_default(self, shape, x, dim, index):
+        c = self.cells(x)
+        return Rows(np.take(c, index.numpy(), axis=self._axis(c, dim)))
+
+    def _op_index_Tensor(self, shape, x, indices):
+        c = self.cells(x)
+        return self._take(c, tuple(slice(None) if i is None else i.numpy() for i in indices))
+
+    def _op_unsqueeze_default(self, shape, x, dim):
+        c = self.cells(x)
+        return Rows(np.expand_dims(c, self._axis(c, dim, 1)))
+
+    def _op_permute_default(self, shape, x, dims):
+        c = self.cells(x)
+        if dims[-1] % (c.ndim + 1) != c.ndim:
+            raise NotImplementedError("row graphs keep the batch axis last")
+        return Rows(np.transpose(c, [d % (c.ndim + 1) for d in dims[:-1]]))
+
+    def _op_transpose_int(self, shape, x, dim0, dim1):
+        c = self.cells(x)
+        return Rows(np.swapaxes(c, self._axis(c, dim0), self._axis(c, dim1)))
+
+    def _op_view_default(self, shape, x, size):
+        return Rows(self.cells(x).reshape(shape[:-1]))
+
+    _op__unsafe_view_default = _op_view_default
+
+    def _op_expand_default(self, shape, x, size, implicit=False):
+        return Rows(np.broadcast_to(self.cells(x), shape[:-1]).copy())
+
+    def _op_clone_default(self, shape, x, **kwargs):
+        return x
+
+    def _op_zeros_like_default(self, shape, x, **kwargs):
+        return Rows(np.full(shape[:-1], 0.0, dtype=object))
+
+    def _op_new_zeros_default(self, shape, x, size, **kwargs):
+        return self._op_zeros_like_default(shape, x)
+
+    def _op_stack_default(self, shape, xs, dim=0):
+        cells = np.broadcast_arrays(*(self.cells(x) for x in xs))
+        return Rows(np.stack(cells, axis=self._axis(cells[0], dim, 1)))
+
+    def _op_cat_default(self, shape, xs, dim=0):
+        cells = [self.cells(x) for x in xs]
+        return Rows(np.concatenate(cells, axis=self._axis(cells[0], dim)))
+
+    def _reduce(self, combine, x, dims, keepdim):
+        """``x`` reduced over the small axes ``dims`` by folding ``combine`` over their rows."""
+        c = self.cells(x)
+        axes = sorted(self._axis(c, d) for d in dims)
+        kept = [a for a in range(c.ndim) if a not in axes]
+        moved = np.transpose(c, kept + axes)
+        moved = moved.reshape(moved.shape[:len(kept)] + (-1,))
+        out = np.empty(moved.shape[:-1], dtype=object)
+        for idx in np.ndindex(out.shape):
+            terms = list(moved[idx])
+            total = terms[0]
+            for t in terms[1:]:
+                total = combine(total, t)
+            out[idx] = total
+        return Rows(np.expand_dims(out, axes) if keepdim else out)
+
+    def _op_sum_dim_IntList(self, shape, x, dims, keepdim=False, dtype=None):
+        return self._reduce(_add, x, dims, keepdim)
+
+    def _op_amax_default(self, shape, x, dims, keepdim=False):
+        return self._reduce(ELEMENTWISE[aten.maximum.default], x, dims, keepdim)
+
+    def _op_amin_default(self, shape, x, dims, keepdim=False):
+        return self._reduce(ELEMENTWISE[aten.minimum.default], x, dims, keepdim)
+
+    def _op_index_add_default(self, shape, x, dim, index, source, alpha=1):
+        out = self.cells(x).copy()
+        src = self.cells(source)
+        axis = self._axis(out, dim)
+        for j, i in enumerate(index.tolist()):
+            at = (slice(None),) * axis + (i, Ellipsis)
+            out[at] = _map(lambda a, b: _add(a, b, alpha), out[at], src[(slice(None),) * axis + (j, Ellipsis)])
+        return Rows(out)
+
+
+def row_graph(fn, args: list) -> GraphModule:
+    """``fn(*args) -> tuple of tensors``, for lanes tensors ``args`` (``None`` passes through), as a graph of row
+    ops with the same inputs and outputs. Traced once at ``args``' shapes; tensors ``fn`` closes over become
+    constants."""
+    with tmath.component_formulas():  # the per-component forms torch.compile traces
+        lanes_graph = make_fx(fn)(*args)
+    lanes_graph.graph.eliminate_dead_code()
+    outputs = fn(*args)
+
+    def rows_fn(*inputs):
+        rows = [x if x is None else Rows(_input_cells(x)) for x in inputs]
+        results = _RowInterpreter(lanes_graph).run(*rows)
+        return tuple(_stack_rows(r.cells, like) for r, like in zip(results, outputs))
+
+    graph = make_fx(rows_fn)(*args)
+    graph.graph.eliminate_dead_code()
+    for node in graph.graph.nodes:  # every constant its own storage: a higher-order op rejects aliased inputs
+        if node.op == "get_attr" and isinstance(getattr(graph, node.target), torch.Tensor):
+            setattr(graph, node.target, getattr(graph, node.target).clone())
+    graph.recompile()
+    return graph
+
+
+def compile_row_graph(fn, args: list, options: dict):
+    """``row_graph(fn, args)`` compiled by inductor (``options``) for exactly the shapes, strides and dtypes of the
+    tensors ``args``; ``fn`` returns one lanes tensor ``(*S, B)``, and so does the compiled function.
+
+    One output, not several: inductor then writes each row once from its single loop, where separate outputs cost
+    extra copy loops and an allocation each (speed pass 9). The compiled function has no guards, so a caller that
+    may pass other inputs keys its compiled graphs on them; without dynamo around it, a call costs ~100 us less
+    than through ``torch.compile``."""
+    from torch._inductor import compile as inductor_compile  # imported on use: it takes ~1 s
+
+    graph = row_graph(lambda *xs: (fn(*xs),), args)
+    for node in graph.graph.nodes:  # inductor traces the graph again under its own fake mode
+        node.meta.pop("val", None)
+        node.meta.pop("tensor_meta", None)
+    compiled = inductor_compile(graph, args, options=options)
+    return lambda *inputs: compiled(*inputs)[0]
+
+
+def _input_cells(x: torch.Tensor) -> np.ndarray:
+    rows = x.reshape(-1, x.shape[-1]).unbind(0)
+    cells = np.empty(len(rows), dtype=object)
+    cells[:] = list(rows)
+    return cells.reshape(x.shape[:-1])
+
+
+def _stack_rows(cells: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+    """Rows back into a tensor shaped like ``like``; stacked level by level, so no output is a view."""
+    def row(r):
+        if _is_num(r):
+            return torch.full(like.shape[-1:], r, dtype=like.dtype, device=like.device)
+        return r.expand(like.shape[-1]) if r.shape[-1] != like.shape[-1] else r
+
+    if cells.ndim == 0:
+        return row(cells[()]).clone()
+    return torch.stack([row(r) if cells.ndim == 1 else _stack_rows(r, like[0]) for r in cells])
+
+
+def system_key(sys) -> tuple:
+    """What a row graph baked in from ``sys``: the identity and version of each of its tensors, and its other fields.
+
+    A tensor edited in place changes version; the caller keeps ``sys`` alive with the graph, so no other tensor
+    can reuse an address while the key is in use."""
+    key = []
+    for value in vars(sys).values():
+        for x in value if isinstance(value, tuple) else (value,):
+            parts = x if isinstance(x, tuple) and not isinstance(x, torch.Tensor) else (x,)
+            key.extend((t.data_ptr(), t._version) if isinstance(t, torch.Tensor) else repr(t) for t in parts)
+    return tuple(key)
