@@ -16,7 +16,7 @@ from torchsim import lanes, parts, rows
 from torchsim.kinematics import Bodies, forward, joint_frames, read_q, with_world
 from torchsim.methods import spring, xpbd
 from torchsim.state import State
-from torchsim.system import BATCHABLE_RANK, System
+from torchsim.system import System
 
 
 def _check(sys: System, name: str, x: torch.Tensor, width: int, batch: int | None = None) -> None:
@@ -83,7 +83,7 @@ def _substeps(sys: System, state: State, ctrl: torch.Tensor, calls: dict | None 
     calls = calls or _EAGER_CALLS
     h = sys.timestep / sys.substeps
     bodies, ctrl = _to_lanes(state, ctrl)
-    terms = calls["terms"](sys, bodies, h)
+    terms = STEP_TERMS[sys.method](sys, bodies, h)
     substep = calls[sys.method]
     if torch.compiler.is_compiling() and not _records_grad(sys, state, ctrl):
         def body(i, *b):
@@ -115,14 +115,18 @@ def _row_substeps(options: dict, calls: dict, sys: System, state: State, ctrl: t
     def substep_of_rows(poses, *given):
         leaves = iter(given)
         ctrl, terms = pytree.tree_unflatten([None if none else next(leaves) for none in nones], spec)
-        new = SUBSTEP[sys.method](sys, Bodies(*_split_poses(poses, shapes)), ctrl, terms, h)
-        return torch.cat([x.reshape(-1, x.shape[-1]) for x in new])
+        return _join_poses(SUBSTEP[sys.method](sys, Bodies(*_split_poses(poses, shapes)), ctrl, terms, h))
 
-    poses = torch.cat([x.reshape(-1, x.shape[-1]) for x in bodies])
+    poses = _join_poses(bodies)
     substep = _row_graph(options, sys, substep_of_rows, [poses, *given])
     for _ in range(sys.substeps):
         poses = substep(poses, *given)
     return calls["finish"](sys, state, Bodies(*_split_poses(poses, shapes)))
+
+
+def _join_poses(bodies: Bodies) -> torch.Tensor:
+    """The lanes tensors of ``bodies`` as the rows of one ``(rows, B)`` tensor; ``_split_poses`` undoes it."""
+    return torch.cat([x.reshape(-1, x.shape[-1]) for x in bodies])
 
 
 def _split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
@@ -170,13 +174,14 @@ STEP_TERMS = {"spring": spring.step_terms, "xpbd": xpbd.step_terms}
 
 
 def _step_terms(sys: System, bodies: Bodies, h: float):
+    """``STEP_TERMS`` of ``sys``'s method, as one function to compile (the row-graph step does)."""
     return STEP_TERMS[sys.method](sys, bodies, h)
 
 
-_EAGER_CALLS = SUBSTEP | {"finish": finish, "terms": _step_terms}
+_EAGER_CALLS = SUBSTEP | {"finish": finish}
 #: Methods whose compiled CPU substep is a row graph (``torchsim.rows``) under ``compile_substeps(rows=True)``: one
-#: loop over the batch instead of ~140 loop nests (``docs/benchmarks.md``,
-#: speed pass 9). xpbd's substep is larger; its row graph was not tried.
+#: loop over the batch instead of ~140 loop nests (``docs/benchmarks.md``, speed pass 9). xpbd's substep is
+#: larger; its row graph was not tried.
 ROWS = {"spring"}
 #: Compiled row-graph substeps by (System key, input shapes), each with the System it baked in (kept alive, see
 #: ``rows.system_key``); the oldest is dropped beyond ``ROW_GRAPHS_KEPT``.
@@ -187,9 +192,7 @@ _ROW_LOCK = threading.Lock()
 
 def _rows_supported(sys: System) -> bool:
     """Row graphs bake the System in: they serve CPU models whose parameters are shared by every env."""
-    batched = any(getattr(sys, name).ndim > rank for name, rank in BATCHABLE_RANK.items()) or any(
-        g.friction.ndim > 1 or g.margin.ndim > 1 for g in sys.contact_groups)
-    return sys.device.type == "cpu" and not batched
+    return sys.device.type == "cpu" and not sys.batched
 
 
 def _row_graph(options: dict, sys: System, substep, args: list):

@@ -385,13 +385,8 @@ def _stack_rows(cells: np.ndarray, like: torch.Tensor) -> torch.Tensor:
 
 
 def system_key(sys) -> tuple:
-    """What a row graph baked in from ``sys``: the identity and version of each of its tensors, and its other fields.
+    """What a row graph baked in from ``sys``: the identity and version of each of its tensors, and its other values.
 
     A tensor edited in place changes version; the caller keeps ``sys`` alive with the graph, so no other tensor
     can reuse an address while the key is in use."""
-    key = []
-    for value in vars(sys).values():
-        for x in value if isinstance(value, tuple) else (value,):
-            parts = x if isinstance(x, tuple) and not isinstance(x, torch.Tensor) else (x,)
-            key.extend((t.data_ptr(), t._version) if isinstance(t, torch.Tensor) else repr(t) for t in parts)
-    return tuple(key)
+    return tuple((x.data_ptr(), x._version) if isinstance(x, torch.Tensor) else repr(x) for x in sys.leaves())

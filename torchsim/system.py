@@ -172,10 +172,20 @@ class System:
     def num_contact_pairs(self) -> int:
         return sum(g.geom_a.shape[0] for g in self.contact_groups)
 
+    def leaves(self):
+        """Every value the System holds, in field order, its tuples (e.g. the contact groups) flattened."""
+        return _leaves(tuple(getattr(self, f.name) for f in dataclasses.fields(self)))
+
     @property
     def requires_grad(self) -> bool:
         """Whether any parameter tensor requires grad (e.g. masses being fitted)."""
-        return any(t.requires_grad for t in _tensors(tuple(getattr(self, f.name) for f in dataclasses.fields(self))))
+        return any(isinstance(x, torch.Tensor) and x.requires_grad for x in self.leaves())
+
+    @property
+    def batched(self) -> bool:
+        """Whether some batchable parameter carries a leading per-env dimension (``BATCHABLE_RANK``)."""
+        return any(getattr(self, name).ndim > rank for name, rank in BATCHABLE_RANK.items()) or any(
+            g.friction.ndim > 1 or g.margin.ndim > 1 for g in self.contact_groups)
 
     @property
     def dtype(self) -> torch.dtype:
@@ -204,10 +214,10 @@ class System:
         return dataclasses.replace(self, **changes)
 
 
-def _tensors(x):
-    """Every tensor in ``x``, a tensor or a (nested) tuple of them and other values."""
-    if isinstance(x, torch.Tensor):
-        yield x
-    elif isinstance(x, tuple):
+def _leaves(x):
+    """The values in ``x``, a value or a (nested) tuple of them; a tensor is one value."""
+    if isinstance(x, tuple):
         for item in x:
-            yield from _tensors(item)
+            yield from _leaves(item)
+    else:
+        yield x
