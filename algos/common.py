@@ -3,6 +3,7 @@ logging, checkpoints, budget, plots and the policy video of one training run).""
 
 import collections
 import json
+import logging
 import os
 import pathlib
 import subprocess
@@ -17,14 +18,18 @@ from omegaconf import DictConfig, OmegaConf
 from tensordict.nn import TensorDictModule
 from torch import nn
 from torchrl.envs import Compose, ExplorationType, RewardSum, StepCounter, TransformedEnv, set_exploration_type
-from torchrl.envs.transforms import VecNormV2
+from torchrl.envs.transforms import RewardScaling, VecNormV2
 from torchrl.modules import MLP, NormalParamExtractor, ProbabilisticActor, TanhNormal, ValueOperator
 from torchrl.record.loggers import get_logger
 
 import torchsim.envs
 
-# VecNormV2 warns on every call that batched containers are experimental; its batch reduction is what we want.
-warnings.filterwarnings("ignore", message="Support of VecNormV2")
+# VecNormV2 (and so RunningNorm) warns on every call that batched containers are experimental; its batch reduction
+# is what we want.
+warnings.filterwarnings("ignore", message=r"Support of \w+ for containers with non-empty batch-size is experimental")
+# tensordict reads a deprecated dynamo flag while torch.compile traces the loss (tensordict 0.14, torch 2.13)
+warnings.filterwarnings("ignore", message=r"torch._dynamo.config.inline_inbuilt_nn_modules is deprecated")
+log = logging.getLogger("torchsim.train")
 
 ACTIVATIONS = {"relu": nn.ReLU, "silu": nn.SiLU, "tanh": nn.Tanh, "elu": nn.ELU}
 
@@ -47,14 +52,21 @@ class RunningNorm(VecNormV2):
         return super()._norm(data, loc, var.apply(lambda v, m: torch.maximum(v, m * m), loc), count)
 
 
-def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False) -> TransformedEnv:
+def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: TransformedEnv | None = None
+             ) -> TransformedEnv:
     """The task batched over ``num_envs`` with running observation normalisation (``RunningNorm``, statistics over
-    the batch too), episode return (``episode_reward``) and length (``step_count``); a ``train`` env staggers its
-    first episodes if ``cfg.stagger_episodes``."""
+    the batch too), episode return (``episode_reward``) and length (``step_count``); a ``train`` env also emits
+    ``scaled_reward`` (``cfg.algo.reward_scale`` times the reward) and staggers its first episodes if
+    ``cfg.stagger_episodes``. ``like``: an env whose System this one shares (with the same
+    ``num_envs``, its compiled step too)."""
     base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length,
-                              stagger_episodes=train and cfg.stagger_episodes)
+                              stagger_episodes=train and cfg.stagger_episodes,
+                              system=None if like is None else like.base_env.base_sys)
     norm = RunningNorm(in_keys=["observation"], decay=cfg.obs_norm_decay, eps=1e-4, reduce_batch_dims=True)
-    return TransformedEnv(base, Compose(norm, RewardSum(), StepCounter()))
+    transforms = [norm, RewardSum(), StepCounter()]
+    if train:  # the losses learn from scaled_reward; reward (and episode_reward) stay the task's
+        transforms.append(RewardScaling(0.0, cfg.algo.reward_scale, in_keys=["reward"], out_keys=["scaled_reward"]))
+    return TransformedEnv(base, Compose(*transforms))
 
 
 def obs_norm(env: TransformedEnv) -> RunningNorm:
@@ -155,7 +167,7 @@ def render_gif(env_name: str, qpos: np.ndarray, dt: float, path: pathlib.Path) -
     if proc.returncode:
         warnings.warn(f"no video ({proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else 'render failed'})")
     else:
-        print(f"video: {path}")
+        log.info(f"video: {path}")
 
 
 # ------------------------------------------------------------------------------------------------------- a training run
@@ -176,11 +188,13 @@ class Run:
         # rows (env_steps, wall_s, value); step_reward: the mean reward per env step of each iteration's batch
         self.history = {"train": [], "eval": [], "eval_success": [], "step_reward": []}
         self.recent = collections.deque(maxlen=cfg.recent_episodes)
-        self.next_eval = 0
+        self.next_eval = 0 if cfg.eval.at_start else cfg.eval.interval_steps
         if cfg.resume:
             self.load(cfg.resume)
         self.t0 = time.perf_counter() - self.elapsed
         self.t_last, self.steps_last = time.perf_counter(), self.env_steps
+        self.iteration_s = self.eval_s = 0.0  # the last iteration's and evaluation's wall-clock seconds
+        self.unprinted_s, self.unprinted_steps = 0.0, 0  # training time and env steps since the last progress line
 
     # -- budget
     @property
@@ -188,9 +202,11 @@ class Run:
         return time.perf_counter() - self.t0
 
     def finished(self) -> bool:
+        """Whether a budget is spent: env steps, an eval return reached, or wall-clock minutes, where the run also
+        stops early enough that its final evaluation (timed as the last one) ends within the budget."""
         b = self.cfg.budget
         return ((b.env_steps is not None and self.env_steps >= b.env_steps)
-                or (b.minutes is not None and self.wall >= 60 * b.minutes)
+                or (b.minutes is not None and self.wall + self.iteration_s + self.eval_s >= 60 * b.minutes)
                 or (b.eval_return is not None and bool(self.history["eval"])
                     and self.history["eval"][-1][2] >= b.eval_return))
 
@@ -222,29 +238,34 @@ class Run:
                                f"{ckpt if ckpt.exists() else 'none'}")
 
     def end_iteration(self, losses: dict) -> None:
-        """After an update: log, print, evaluate and checkpoint when due."""
+        """After an update: log; print a progress line every ``cfg.print_every`` iterations (with the env-steps/s
+        of the iterations since the last one) and with every evaluation; evaluate and checkpoint when due."""
         self.iteration += 1
-        losses = {k: float(v) for k, v in losses.items()}
-        now = time.perf_counter()
-        sps = (self.env_steps - self.steps_last) / max(now - self.t_last, 1e-9)
-        self.t_last, self.steps_last = now, self.env_steps
+        self.iteration_s = time.perf_counter() - self.t_last
+        steps = self.env_steps - self.steps_last
+        self.unprinted_s, self.unprinted_steps = self.unprinted_s + self.iteration_s, self.unprinted_steps + steps
+        self.steps_last = self.env_steps
         recent = float(np.mean(self.recent)) if self.recent else float("nan")
-        metrics = {**{f"train/{k}": v for k, v in losses.items()}, "train/step_reward": self.step_reward,
-                   "time/env_steps_per_s": sps, "time/wall_s": self.wall}
+        metrics = {**{f"train/{k}": float(v) for k, v in losses.items()}, "train/step_reward": self.step_reward,
+                   "time/env_steps_per_s": steps / max(self.iteration_s, 1e-9), "time/wall_s": self.wall}
         if self.recent:
             metrics["train/return"] = recent
             self.history["train"].append((self.env_steps, self.wall, recent))
         self.history["step_reward"].append((self.env_steps, self.wall, self.step_reward))
         self.log(metrics)
-        line = (f"[{self.cfg.algo.name} {self.cfg.env.name}] it {self.iteration:4d}  steps {self.env_steps:>9,d}  "
-                f"{sps:7.0f} steps/s  return {recent:8.2f}  reward/step {self.step_reward:7.3f}  "
-                f"{self.wall / 60:5.1f} min")
-        if self.env_steps >= self.next_eval or self.finished():
-            line += self.evaluate()
+        line = (f"[{self.cfg.algo.name} {self.cfg.env.name}] it {self.iteration:4d}  steps {self.env_steps:>11,d}  "
+                f"{self.unprinted_steps / max(self.unprinted_s, 1e-9):7.0f} steps/s  return {recent:8.2f}  "
+                f"reward/step {self.step_reward:7.3f}  {self.wall / 60:5.1f} min")
+        evaluate = self.env_steps >= self.next_eval or self.finished()
+        if evaluate:
+            line += self.evaluate() + f" ({self.eval_s:.0f} s)"
             self.next_eval = self.env_steps + self.cfg.eval.interval_steps
-        print(line, flush=True)
+        if evaluate or self.iteration % self.cfg.print_every == 0:
+            log.info(line)
+            self.unprinted_s = self.unprinted_steps = 0
         if self.iteration % self.cfg.checkpoint_every == 0 or self.finished():
             self.save()
+        self.t_last = time.perf_counter()  # the next iteration's time and rate leave evaluation and saving out
 
     def log(self, metrics: dict) -> None:
         if self.logger is not None:
@@ -254,7 +275,9 @@ class Run:
     def evaluate(self) -> str:
         """Evaluate, record and log; return the progress-line text (return, and success for goal tasks)."""
         self.sync_eval_norm()
+        start = time.perf_counter()
         result = evaluate(self.eval_env, self.actor, self.cfg.eval.max_steps, seed=self.cfg.eval.seed)
+        self.eval_s = time.perf_counter() - start
         mean = result.ret.mean().item()
         self.history["eval"].append((self.env_steps, self.wall, mean))
         metrics = {"eval/return": mean, "eval/episode_length": result.length.float().mean().item()}
@@ -296,7 +319,7 @@ class Run:
                                                                       c["next_eval"])
         self.history.update(ckpt["history"])
         torch.set_rng_state(ckpt["rng"])
-        print(f"resumed from {path} at env step {self.env_steps}")
+        log.info(f"resumed from {path} at env step {self.env_steps}")
 
     # -- end of run
     def finish(self) -> None:
@@ -313,7 +336,7 @@ class Run:
         if self.history["eval_success"]:
             summary["final_eval_success_rate"] = self.history["eval_success"][-1][2]
         (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
-        print(f"done: {summary}; outputs in {self.out_dir}")
+        log.info(f"done: {summary}; outputs in {self.out_dir}")
 
 
 def plot_curves(history: dict, path, title: str) -> None:
@@ -352,9 +375,6 @@ def plot_curves(history: dict, path, title: str) -> None:
 
 
 def maybe_compile(loss_module, cfg: DictConfig):
-    """``torch.compile`` the loss when ``cfg.compile``; a graph dynamo cannot handle runs eagerly instead of failing
-    (the update must work either way, on CPU and CUDA)."""
-    if not cfg.compile:
-        return loss_module
-    torch._dynamo.config.suppress_errors = True
-    return torch.compile(loss_module)
+    """``torch.compile`` the loss when ``cfg.compile``. Graph breaks (TorchRL's losses have some) run as Python
+    between compiled pieces; a compiler error is raised, never hidden behind a silently slow eager loss."""
+    return torch.compile(loss_module) if cfg.compile else loss_module

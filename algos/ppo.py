@@ -1,51 +1,76 @@
 """PPO (clipped objective, GAE) on a batched torchsim env, everything on ``cfg.device``.
 
-Each iteration collects ``num_envs x unroll`` steps with the stochastic policy, then runs ``epochs`` passes of
-``minibatches`` Adam steps over the batch, recomputing GAE before each pass (the critic moves between passes).
+Each iteration collects ``num_envs x unroll`` steps with the stochastic policy, computes GAE advantages once (with
+the critic of the iteration's start, as CleanRL does), then runs ``epochs`` passes of ``minibatches`` Adam steps
+over the batch, drawn without replacement by a TorchRL replay buffer.
 """
 
 import torch
 from torch import nn
 from torchrl.collectors import Collector
+from torchrl.data import LazyTensorStorage, ReplayBuffer
+from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from torchsim.algos.common import Run, make_actor, make_env, make_value, maybe_compile, obs_norm
 
 
-def train(cfg, out_dir) -> Run:
-    a, device = cfg.algo, torch.device(cfg.device)
-    env = make_env(cfg, a.num_envs, device, train=True)
-    actor = make_actor(env, a.policy_net, device)
-    critic = make_value(env, a.value_net, device, with_action=False)
-    loss_module = ClipPPOLoss(actor, critic, clip_epsilon=a.clip_epsilon, entropy_coeff=a.entropy_coeff,
-                              critic_coeff=a.critic_coeff, normalize_advantage=True, loss_critic_type="l2")
-    gae = GAE(gamma=a.gamma, lmbda=a.gae_lambda, value_network=critic, average_gae=False, device=device)
-    optim = torch.optim.Adam(loss_module.parameters(), lr=a.lr, eps=1e-5)
-    run = Run(cfg, out_dir, {"loss": loss_module, "optim": optim, "obs_norm": obs_norm(env)}, actor,
-              eval_env=make_env(cfg, cfg.eval.episodes, device), train_env=env)
-    collector = Collector(env, actor, frames_per_batch=a.num_envs * a.unroll, total_frames=-1, device=device,
-                          auto_register_policy_transforms=False)
-    loss_fn = maybe_compile(loss_module, cfg)
-    for data in collector:  # data: (num_envs, unroll)
-        run.record_batch(data)
-        data["next", "reward"] = data["next", "reward"] * a.reward_scale
+class PPO:
+    """The pieces of a PPO run: training env, actor, critic, loss, optimiser and collector (``cfg.algo``)."""
+
+    def __init__(self, cfg):
+        a, device = cfg.algo, torch.device(cfg.device)
+        self.cfg, self.device = cfg, device
+        self.env = make_env(cfg, a.num_envs, device, train=True)
+        self.actor = make_actor(self.env, a.policy_net, device)
+        self.critic = make_value(self.env, a.value_net, device, with_action=False)
+        self.loss_module = ClipPPOLoss(self.actor, self.critic, clip_epsilon=a.clip_epsilon,
+                                       entropy_coeff=a.entropy_coeff, critic_coeff=a.critic_coeff,
+                                       normalize_advantage=True, loss_critic_type="l2")
+        self.gae = GAE(gamma=a.gamma, lmbda=a.gae_lambda, value_network=self.critic, average_gae=False,
+                       device=device)
+        self.gae.set_keys(reward="scaled_reward")  # make_env's RewardScaling writes it beside the task's reward
+        self.optim = torch.optim.Adam(self.loss_module.parameters(), lr=a.lr, eps=1e-5)
+        frames = a.num_envs * a.unroll
+        self.collector = Collector(self.env, self.actor, frames_per_batch=frames, total_frames=-1, device=device,
+                                   auto_register_policy_transforms=False)
+        self.batches = ReplayBuffer(storage=LazyTensorStorage(frames, device=device),
+                                    sampler=SamplerWithoutReplacement(), batch_size=frames // a.minibatches)
+        self.loss_fn = maybe_compile(self.loss_module, cfg)
+
+    def state(self) -> dict:
+        """What a checkpoint holds and a resumed run restores."""
+        return {"loss": self.loss_module, "optim": self.optim, "obs_norm": obs_norm(self.env)}
+
+    def update(self, data, check_update) -> dict:
+        """``epochs`` passes over ``data`` (num_envs, unroll); ``check_update(losses, grad_norm, minibatch)`` runs
+        before every optimiser step. Returns the last minibatch's loss terms."""
+        a = self.cfg.algo
+        with torch.no_grad():
+            self.gae(data)
+        self.batches.extend(data.reshape(-1))
         for _ in range(a.epochs):
-            with torch.no_grad():
-                gae(data)
-            flat = data.reshape(-1)
-            for idx in torch.randperm(flat.numel(), device=device).split(flat.numel() // a.minibatches):
-                minibatch = flat[idx]
-                losses = loss_fn(minibatch)
+            for minibatch in self.batches:  # one pass, without replacement
+                losses = self.loss_fn(minibatch)
                 loss = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
-                optim.zero_grad()
+                self.optim.zero_grad()
                 loss.backward()
-                grad_norm = nn.utils.clip_grad_norm_(loss_module.parameters(), a.max_grad_norm)
-                run.check_update(losses, grad_norm, minibatch)
-                optim.step()
-        run.end_iteration(losses.select("loss_objective", "loss_critic", "loss_entropy").detach())
+                grad_norm = nn.utils.clip_grad_norm_(self.loss_module.parameters(), a.max_grad_norm or float("inf"))
+                check_update(losses, grad_norm, minibatch)
+                self.optim.step()
+        return losses.select("loss_objective", "loss_critic", "loss_entropy").detach()
+
+
+def train(cfg, out_dir) -> Run:
+    ppo = PPO(cfg)
+    run = Run(cfg, out_dir, ppo.state(), ppo.actor, eval_env=make_env(cfg, cfg.eval.episodes, ppo.device,
+                                                                      like=ppo.env), train_env=ppo.env)
+    for data in ppo.collector:  # data: (num_envs, unroll)
+        run.record_batch(data)
+        run.end_iteration(ppo.update(data, run.check_update))
         if run.finished():
             break
-    collector.shutdown()
+    ppo.collector.shutdown()
     run.finish()
     return run

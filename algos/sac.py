@@ -20,19 +20,19 @@ def train(cfg, out_dir) -> Run:
     qvalue = make_value(env, a.q_net, device, with_action=True)
     loss_module = SACLoss(actor, qvalue, num_qvalue_nets=2, loss_function="l2", alpha_init=a.alpha_init)
     loss_module.make_value_estimator(gamma=a.gamma)
+    loss_module.set_keys(reward="scaled_reward")  # make_env's RewardScaling writes it beside the task's reward
     target_update = SoftUpdate(loss_module, tau=a.tau)
     # one optimiser suffices: SACLoss detaches what each of its three losses must not train
     optim = torch.optim.Adam(loss_module.parameters(), lr=a.lr)
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(a.buffer_size, device=device), batch_size=a.batch_size)
     run = Run(cfg, out_dir, {"loss": loss_module, "optim": optim, "obs_norm": obs_norm(env)}, actor,
-              eval_env=make_env(cfg, cfg.eval.episodes, device), train_env=env)
+              eval_env=make_env(cfg, cfg.eval.episodes, device, like=env), train_env=env)
     collector = Collector(env, actor, frames_per_batch=a.num_envs * a.unroll, total_frames=-1, device=device,
                           auto_register_policy_transforms=False,
                           init_random_frames=0 if cfg.resume else a.random_frames)
     loss_fn = maybe_compile(loss_module, cfg)
     for data in collector:
         run.record_batch(data)
-        data["next", "reward"] = data["next", "reward"] * a.reward_scale
         buffer.extend(data.reshape(-1))
         for _ in range(a.updates_per_iter):
             minibatch = buffer.sample()

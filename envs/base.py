@@ -52,6 +52,8 @@ class TorchsimEnv(EnvBase):
             ``[0, episode_length)``, so first episodes are truncated at different times. Tasks that never end early
             otherwise run every env in the same phase of its episode, and a training batch of a few steps then
             holds one phase only (for training envs; evaluations want whole episodes).
+        system: the task's model, already loaded (another env's ``base_sys``): envs that share one System object
+            and batch size share its compiled step (an evaluation env beside a training env compiles nothing).
     """
 
     #: The model asset in ``envs/assets``: MJCF (``.xml``) or URDF (``.urdf``, translated by ``urdf_to_mjcf``).
@@ -80,14 +82,20 @@ class TorchsimEnv(EnvBase):
 
     def __init__(self, num_envs: int = 1, *, device="cpu", dtype=torch.float32, episode_length: int = 1000,
                  native_autoreset: bool = False, method: str | None = None, substeps: int | None = None,
-                 stagger_episodes: bool = False):
+                 stagger_episodes: bool = False, system: "torchsim.System | None" = None):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs}")
         super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
         xml = self._model_xml()
         self.mj_model = mujoco.MjModel.from_xml_string(xml)
-        self.base_sys = torchsim.load_mjcf(xml, method=method or self.method, substeps=substeps or self.substeps,
-                                           xpbd_iterations=self.xpbd_iterations, dtype=dtype, device=self.device)
+        if system is None:
+            system = torchsim.load_mjcf(xml, method=method or self.method, substeps=substeps or self.substeps,
+                                        xpbd_iterations=self.xpbd_iterations, dtype=dtype, device=self.device)
+        elif (system.dtype, system.device) != (dtype, self.device) or method or substeps:
+            raise ValueError(f"{type(self).__name__}: a given system must be in the env's dtype and on its device "
+                             f"({dtype}, {self.device}; got {system.dtype}, {system.device}) and comes with its "
+                             "own method and substeps")
+        self.base_sys = system
         self.sys = self.base_sys
         self.episode_length = int(episode_length)
         self.stagger_episodes = bool(stagger_episodes)

@@ -13,7 +13,8 @@ from torchrl.envs.utils import RandomPolicy
 from torchsim.algos.common import RunningNorm, TrainingDiverged, evaluate, load_policy, make_env
 from torchsim.train import CONFIG_DIR, run
 
-QUIET = ["video.enabled=false", "logger=''"]
+# Eager physics and one thread: these tests check the recipes, not the compiled step (tests/test_training_compile.py)
+QUIET = ["video.enabled=false", "logger=''", "compile=false", "threads=1"]
 TINY = {"ppo": ["algo.num_envs=8", "algo.unroll=2", "algo.minibatches=2"],
         "sac": ["algo.num_envs=8", "algo.unroll=2", "algo.random_frames=8", "algo.batch_size=8", "algo.updates_per_iter=2"]}
 

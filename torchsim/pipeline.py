@@ -12,7 +12,7 @@ import torch
 import torch.utils._pytree as pytree
 from torch._higher_order_ops.while_loop import while_loop
 
-from torchsim import lanes, parts, rows
+from torchsim import lanes, parts, progress, row_cache, rows
 from torchsim.kinematics import Bodies, forward, joint_frames, read_q, with_world
 from torchsim.methods import spring, xpbd
 from torchsim.state import State
@@ -57,6 +57,8 @@ def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
     over the whole batch, other steps with a CPU batch as parts of a few hundred envs on worker threads
     (``torchsim.parts``); the results are the same."""
     _check(sys, "ctrl", ctrl, sys.nu, state.x_pos.shape[0])
+    if torch.compiler.is_compiling():  # the caller compiles a function around the step (e.g. torch.compile(step))
+        warnings.warn(SLOW_COMPILE_WARNING, stacklevel=2)
     run, compiled = _substeps, _STEP["compiled"]
     if compiled is not None:
         if _records_grad(sys, state, ctrl):
@@ -69,6 +71,14 @@ def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
     if len(sizes) > 1:
         return parts.step_in_parts(run, sys, state, ctrl, sizes)
     return run(sys, state, ctrl)
+
+
+SLOW_COMPILE_WARNING = (
+    "torchsim.step is being traced by torch.compile: the step then compiles as loop nests over (components, batch), "
+    "several times slower on CPU than the engine's own compiled step. For that, call torchsim.compile_substeps() "
+    "once and call torchsim.step (or the env's step) without torch.compile around it.")
+# dynamo runs warnings.warn after the graph instead of breaking the graph on it (fullgraph=True would fail)
+torch._dynamo.config.reorderable_logging_functions.add(warnings.warn)
 
 
 def _substeps(sys: System, state: State, ctrl: torch.Tensor, calls: dict | None = None) -> State:
@@ -204,7 +214,10 @@ def _row_graph(options: dict, sys: System, substep, args: list):
         with _ROW_LOCK:  # steps on several threads: one builds it
             entry = _ROW_GRAPHS.get(key)
             if entry is None:
-                entry = _ROW_GRAPHS[key] = (sys, rows.compile_row_graph(substep, args, options))
+                with progress.announce(f"the {sys.method} substep as a row graph ({sys.num_bodies} bodies, "
+                                       f"batch {args[0].shape[-1]}, {args[0].dtype})"):
+                    graph = rows.compile_row_graph(substep, args, options, row_cache.content_key(sys, args, options))
+                    entry = _ROW_GRAPHS[key] = (sys, graph)
                 while len(_ROW_GRAPHS) > ROW_GRAPHS_KEPT:
                     del _ROW_GRAPHS[next(iter(_ROW_GRAPHS))]
     return entry[1]

@@ -18,10 +18,13 @@ import operator
 
 import numpy as np
 import torch
+from torch._subclasses.fake_tensor import FakeTensorMode
 from torch.fx import GraphModule, Interpreter
+from torch.fx.experimental.symbolic_shapes import ShapeEnv
 from torch.fx.experimental.proxy_tensor import disable_proxy_modes_tracing, make_fx
 
 from torchsim import math as tmath
+from torchsim import row_cache
 
 aten = torch.ops.aten
 
@@ -347,21 +350,31 @@ def row_graph(fn, args: list) -> GraphModule:
     return graph
 
 
-def compile_row_graph(fn, args: list, options: dict):
+def compile_row_graph(fn, args: list, options: dict, content_key: str | None = None):
     """``row_graph(fn, args)`` compiled by inductor (``options``) for exactly the shapes, strides and dtypes of the
     tensors ``args``; ``fn`` returns one lanes tensor ``(*S, B)``, and so does the compiled function.
 
     One output, not several: inductor then writes each row once from its single loop, where separate outputs cost
     extra copy loops and an allocation each (speed pass 9). The compiled function has no guards, so a caller that
     may pass other inputs keys its compiled graphs on them; without dynamo around it, a call costs ~100 us less
-    than through ``torch.compile``."""
+    than through ``torch.compile``.
+
+    ``content_key`` (``torchsim.row_cache.content_key``): the row graph is kept on disk (``torchsim.row_cache``),
+    and inductor's compiled code in its own on-disk cache, so another process with the same key skips both the
+    graph's build and inductor's code generation and C++ compile."""
     from torch._inductor import compile as inductor_compile  # imported on use: it takes ~1 s
 
-    graph = row_graph(lambda *xs: (fn(*xs),), args)
-    for node in graph.graph.nodes:  # inductor traces the graph again under its own fake mode
-        node.meta.pop("val", None)
-        node.meta.pop("tensor_meta", None)
-    compiled = inductor_compile(graph, args, options=options)
+    graph = None if content_key is None else row_cache.load(content_key)
+    if graph is None:
+        graph = row_graph(lambda *xs: (fn(*xs),), args)
+        for node in graph.graph.nodes:  # inductor traces the graph again under its own fake mode
+            node.meta.pop("val", None)
+            node.meta.pop("tensor_meta", None)
+        if content_key is not None:
+            graph = row_cache.store(content_key, graph)
+    # fake inputs with a shape environment: without one, inductor's on-disk graph cache is bypassed
+    fake_mode = FakeTensorMode(allow_non_fake_inputs=True, shape_env=ShapeEnv())
+    compiled = inductor_compile(graph, [fake_mode.from_tensor(x, static_shapes=True) for x in args], options=options)
     return lambda *inputs: compiled(*inputs)[0]
 
 

@@ -4,6 +4,7 @@ Configs live in ``torchsim/algos/configs`` (``--cfg job`` prints the composed on
 ``curves.png``, ``policy.gif``, ``summary.json``) go to the Hydra run dir ``outputs/<algo>_<env>/<time>/``.
 """
 
+import logging
 import pathlib
 import sys
 
@@ -14,6 +15,7 @@ from omegaconf import DictConfig
 
 import torchsim
 import torchsim.algos
+import torchsim.progress
 from torchsim.algos import ppo, sac
 from torchsim.algos.common import Run, TrainingDiverged
 
@@ -23,7 +25,10 @@ RECIPES = {"ppo": ppo.train, "sac": sac.train}
 
 def run(cfg: DictConfig, out_dir) -> Run:
     """Run the recipe ``cfg.algo.name`` with ``cfg``, writing into ``out_dir``; return the finished run."""
-    torch.set_num_threads(cfg.threads)
+    torchsim.progress.announce_torch_compiles()
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # its storage-allocation notices are not progress
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     torchsim.compile_substeps(cfg.compile)
     return RECIPES[cfg.algo.name](cfg, out_dir)

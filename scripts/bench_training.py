@@ -1,0 +1,100 @@
+"""Where a PPO iteration's time goes, side by side in one run, as env-steps/s (samples/s for the learner):
+
+    python scripts/bench_training.py                       # the main job's settings (PPO on Ant, config defaults)
+    python scripts/bench_training.py env=halfcheetah algo.num_envs=1024 --repeats 5
+
+1. engine alone: ``torchsim.step`` x frame_skip on the training batch under random controls (no env, no policy);
+2. env alone: ``env.step`` of the TorchRL env with its transforms (observation, reward, resets, normaliser);
+3. collector: ``Collector`` batches (engine + policy + transforms), frames per second;
+4. learner: ``PPO.update`` on one collected batch (GAE, then epochs x minibatches of Adam steps), samples/s;
+5. whole loop: collector and learner in turn, as ``torchsim.train`` runs them.
+
+Hydra-style ``key=value`` overrides select the config (the same composition as ``python -m torchsim.train``); the
+compile it asks for happens before timing. Each figure is the median of ``--repeats`` timings.
+"""
+
+import argparse
+import statistics
+import time
+
+import torch
+from hydra import compose, initialize_config_dir
+from tensordict import TensorDict
+
+import torchsim
+import torchsim.progress
+from torchsim.algos.ppo import PPO
+from torchsim.train import CONFIG_DIR
+
+
+def median_time(fn, repeats: int) -> float:
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main():
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("overrides", nargs="*", help="config overrides, as for python -m torchsim.train")
+    p.add_argument("--repeats", type=int, default=3)
+    args = p.parse_args()
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose(config_name="config", overrides=args.overrides)
+    if cfg.algo.name != "ppo":
+        raise SystemExit("bench_training.py times the PPO recipe (algo=ppo)")
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+    import logging
+
+    logging.basicConfig(level=logging.INFO, format="%(message)s")
+    torchsim.progress.announce_torch_compiles()
+    ppo = PPO(cfg)
+    env, a = ppo.env.base_env, cfg.algo
+    frames = a.num_envs * a.unroll
+    print(f"{cfg.env.name}, batch {a.num_envs}, unroll {a.unroll}, {a.epochs} epochs x {a.minibatches} minibatches, "
+          f"compile={cfg.compile}, {torch.get_num_threads()} threads, float32, CPU", flush=True)
+
+    ctrl = torch.rand(a.num_envs, env.sys.nu) * 2 - 1
+    state = env.state
+
+    def engine():
+        s = state
+        for _ in range(a.unroll):
+            for _ in range(env.frame_skip):
+                s = torchsim.step(env.sys, s, ctrl)
+
+    td = TensorDict(action=ppo.env.action_spec.rand(), batch_size=ppo.env.batch_size)
+    ppo.env.reset()
+
+    def env_steps():
+        for _ in range(a.unroll):
+            td["action"] = ppo.env.action_spec.rand()
+            ppo.env.step(td)
+
+    batches = iter(ppo.collector)
+    data = next(batches)  # compiles the step (and, with it, everything the first batch needs)
+    engine()
+    ppo.update(data.clone(), lambda *args: None)  # compiles the loss
+    rows = {"engine alone (torchsim.step)": a.num_envs * a.unroll / median_time(engine, args.repeats),
+            "env alone (env.step + transforms)": a.num_envs * a.unroll / median_time(env_steps, args.repeats),
+            "collector (env + policy)": frames / median_time(lambda: next(batches), args.repeats),
+            "learner (PPO.update)": frames / median_time(lambda: ppo.update(data.clone(), lambda *args: None),
+                                                         args.repeats)}
+
+    def iteration():
+        ppo.update(next(batches), lambda *args: None)
+
+    rows["whole loop (collector + learner)"] = frames / median_time(iteration, args.repeats)
+    engine_rate = rows["engine alone (torchsim.step)"]
+    print("\n| stage | env-steps/s | of engine alone |\n|---|---|---|")
+    for name, rate in rows.items():
+        print(f"| {name} | {rate:,.0f} | {rate / engine_rate:.2f} |")
+    ppo.collector.shutdown()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,106 @@
+"""The compiled engine as training uses it (issue 25): evaluation reuses the training batch's compiled step, a second
+process loads the compiled row graph from the on-disk cache, the compiled env step equals the eager one with
+per-env physics parameters, and ``torch.compile(torchsim.step)`` warns that it is not the fast path.
+
+Compiling costs tens of seconds even for the small models used here, so each test compiles one thing once.
+"""
+
+import json
+import logging
+import os
+import subprocess
+import sys
+import textwrap
+
+import pytest
+import torch
+from tensordict import TensorDict
+
+import torchsim
+import torchsim.envs
+from test_train import QUIET, config
+from torchsim.train import run
+
+
+@pytest.fixture
+def eager_afterwards():
+    """Leave the process-wide compiled step switched off for the tests that follow."""
+    yield
+    torchsim.compile_substeps(False)
+
+
+def test_evaluation_reuses_the_training_graph(tmp_path, caplog, eager_afterwards):
+    """PPO with ``compile=true``: the training env compiles the step (its terms, its row-graph substep, its end) once;
+    the evaluation env, built like the training env (``eval.episodes`` defaults to ``algo.num_envs``), compiles
+    nothing more, though it is evaluated at the first and the last iteration."""
+    cfg = config("algo=ppo", "env=inverted_pendulum", "algo.num_envs=8", "algo.unroll=2", "algo.minibatches=2",
+                 "budget.env_steps=32", "eval.max_steps=5", *QUIET, "compile=true")
+    with caplog.at_level(logging.INFO, logger="torchsim"):
+        trained = run(cfg, tmp_path)
+    assert len(trained.history["eval"]) == 2 and trained.eval_env.batch_size == trained.train_env.batch_size
+    started = [r.getMessage() for r in caplog.records if r.getMessage().startswith("compiling ")]
+    physics = [m for m in started if "row graph" in m or "_step_terms" in m or "finish" in m]
+    assert len([m for m in physics if "row graph" in m]) == 1, started
+    assert len([m for m in physics if "_step_terms" in m]) == 1, started
+    assert len([m for m in physics if "finish" in m]) == 1, started
+
+
+CACHE_PROBE = textwrap.dedent("""
+    import json, logging, sys, torch, torchsim, torchsim.envs
+    from torch._dynamo.utils import counters
+    logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
+    sys_ = torchsim.load_mjcf(str(torchsim.envs.asset_path("inverted_pendulum.xml")))
+    torchsim.compile_substeps()
+    state = torchsim.init(sys_, sys_.q0.expand(8, -1).clone(), torch.zeros(8, sys_.nv))
+    state = torchsim.step(sys_, state, torch.zeros(8, sys_.nu))
+    print(json.dumps({"q": state.q.tolist(), "inductor": dict(counters["inductor"])}))
+""")
+
+
+def test_second_process_loads_the_compiled_step_from_disk(tmp_path):
+    """Two processes compile the same step with empty caches in ``tmp_path``: the first builds the row graph and
+    stores it (``TORCHSIM_CACHE_DIR``) with inductor's code (``TORCHINDUCTOR_CACHE_DIR``); the second loads the
+    graph and hits inductor's cache for every graph, building and compiling nothing, with the same result."""
+    env = {**os.environ, "TORCHSIM_CACHE_DIR": str(tmp_path / "torchsim"),
+           "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "inductor")}
+    runs = [subprocess.run([sys.executable, "-c", CACHE_PROBE], env=env, capture_output=True, text=True, timeout=600)
+            for _ in range(2)]
+    for proc in runs:
+        assert proc.returncode == 0, proc.stderr[-3000:]
+    first, second = (json.loads(proc.stdout.strip().splitlines()[-1]) for proc in runs)
+    assert "loaded the row graph" not in runs[0].stderr and "loaded the row graph" in runs[1].stderr
+    assert first["inductor"].get("fxgraph_cache_miss", 0) >= 1
+    assert second["inductor"].get("fxgraph_cache_miss", 0) == 0 and second["inductor"]["fxgraph_cache_hit"] >= 3
+    assert first["q"] == second["q"]
+    assert list((tmp_path / "torchsim" / "rows").glob("*.pt"))
+
+
+def test_compiled_env_step_matches_eager_with_per_env_parameters(eager_afterwards):
+    """Domain randomisation (``set_physics`` with a different mass, friction and actuator gain per env) under the
+    compiled step: 10 env steps equal the eager ones to float32 tolerance (1e-4: rounding of reordered float32
+    arithmetic grown over 10 x 2 physics steps; one step agrees to ~1e-6)."""
+    torch.manual_seed(0)
+    env = torchsim.envs.make("inverted_pendulum", num_envs=6)
+    env.set_physics(mass_scale=torch.linspace(0.5, 1.5, 6), friction_scale=torch.linspace(0.5, 2.0, 6),
+                    actuator_gain_scale=torch.linspace(0.7, 1.3, 6))
+    env.reset()
+    start = (env.state, env.task, env.step_count.clone())
+    actions = torch.rand(10, 6, env.sys.nu) * 2 - 1
+    trajectories = []
+    for compiled in (False, True):
+        torchsim.compile_substeps(compiled)
+        env.state, env.task, env.step_count = start[0], start[1], start[2].clone()
+        obs = []
+        for action in actions:
+            obs.append(env.step(TensorDict(action=action, batch_size=[6]))["next", "observation"])
+        trajectories.append(torch.stack(obs))
+    eager, compiled = trajectories
+    assert not torch.equal(eager[:, 0], eager[:, -1])  # the envs differ
+    torch.testing.assert_close(compiled, eager, rtol=0, atol=1e-4)
+
+
+def test_torch_compile_of_step_warns_it_is_not_the_fast_path():
+    sys_ = torchsim.load_mjcf(str(torchsim.envs.asset_path("inverted_pendulum.xml")))
+    state = torchsim.init(sys_, sys_.q0.expand(2, -1).clone(), torch.zeros(2, sys_.nv))
+    with pytest.warns(UserWarning, match="compile_substeps"):
+        torch.compile(torchsim.step, fullgraph=True)(sys_, state, torch.zeros(2, sys_.nu))

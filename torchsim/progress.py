@@ -1,0 +1,69 @@
+"""Say what is being compiled, and for how long, while it compiles (minutes on CPU).
+
+Messages go to the ``torchsim`` logger at INFO level (``torchsim.train`` shows them; elsewhere
+``logging.basicConfig(level=logging.INFO)`` does).
+"""
+
+import contextlib
+import logging
+import sys
+import threading
+import types
+import time
+
+log = logging.getLogger("torchsim")
+
+#: Seconds between "still compiling" lines.
+HEARTBEAT_S = 15.0
+
+
+@contextlib.contextmanager
+def announce(what: str):
+    """Log ``compiling <what>`` now, how long it has taken every ``HEARTBEAT_S`` seconds, and the total at the end."""
+    t0 = time.perf_counter()
+    done = threading.Event()
+
+    def heartbeat():
+        while not done.wait(HEARTBEAT_S):
+            log.info("  ... compiling %s: %.0f s", what, time.perf_counter() - t0)
+
+    log.info("compiling %s", what)
+    thread = threading.Thread(target=heartbeat, daemon=True)
+    thread.start()
+    try:
+        yield
+    finally:
+        done.set()
+        thread.join()
+    log.info("compiled %s in %.1f s", what, time.perf_counter() - t0)
+
+
+def announce_torch_compiles() -> None:
+    """Announce every ``torch.compile`` compilation in this process (through dynamo's start and end callbacks),
+    naming the function being compiled; installs itself once."""
+    if _open:
+        return
+    from torch._dynamo.callback import callback_handler
+
+    def start(args):
+        _open[0] = contextlib.ExitStack()
+        _open[0].enter_context(announce(f"{_compiled_function_name()} (torch.compile {args.compile_id})"))
+
+    callback_handler.register_start_callback(start)
+    callback_handler.register_end_callback(lambda args: _open[0].close())
+    _open.append(contextlib.ExitStack())
+
+
+#: The announcement of the compilation in progress (dynamo compiles one frame at a time).
+_open: list[contextlib.ExitStack] = []
+
+
+def _compiled_function_name() -> str:
+    """The name of the function dynamo is compiling: its ``_compile(code, ...)`` frame is on the stack."""
+    frame = sys._getframe()
+    while frame is not None:
+        code = frame.f_locals.get("code") if frame.f_code.co_name == "_compile" else None
+        if isinstance(code, types.CodeType):
+            return code.co_qualname
+        frame = frame.f_back
+    return "a function"
