@@ -14,12 +14,12 @@ compile it asks for happens before timing. Each figure is the median of ``--repe
 """
 
 import argparse
+import logging
 import statistics
 import time
 
 import torch
 from hydra import compose, initialize_config_dir
-from tensordict import TensorDict
 
 import torchsim
 import torchsim.progress
@@ -48,10 +48,9 @@ def main():
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
-    import logging
-
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     torchsim.progress.announce_torch_compiles()
+    torchsim.compile_substeps(cfg.compile)  # as torchsim.train does
     ppo = PPO(cfg)
     env, a = ppo.env.base_env, cfg.algo
     frames = a.num_envs * a.unroll
@@ -67,13 +66,11 @@ def main():
             for _ in range(env.frame_skip):
                 s = torchsim.step(env.sys, s, ctrl)
 
-    td = TensorDict(action=ppo.env.action_spec.rand(), batch_size=ppo.env.batch_size)
-    ppo.env.reset()
-
     def env_steps():
+        td = ppo.env.reset()
         for _ in range(a.unroll):
             td["action"] = ppo.env.action_spec.rand()
-            ppo.env.step(td)
+            td = ppo.env.step_mdp(ppo.env.step(td))
 
     batches = iter(ppo.collector)
     data = next(batches)  # compiles the step (and, with it, everything the first batch needs)
