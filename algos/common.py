@@ -256,11 +256,11 @@ class Run:
         line = (f"[{self.cfg.algo.name} {self.cfg.env.name}] it {self.iteration:4d}  steps {self.env_steps:>11,d}  "
                 f"{self.unprinted_steps / max(self.unprinted_s, 1e-9):7.0f} steps/s  return {recent:8.2f}  "
                 f"reward/step {self.step_reward:7.3f}  {self.wall / 60:5.1f} min")
-        evaluate = self.env_steps >= self.next_eval or self.finished()
-        if evaluate:
+        eval_due = self.env_steps >= self.next_eval or self.finished()
+        if eval_due:
             line += self.evaluate() + f" ({self.eval_s:.0f} s)"
             self.next_eval = self.env_steps + self.cfg.eval.interval_steps
-        if evaluate or self.iteration % self.cfg.print_every == 0:
+        if eval_due or self.iteration % self.cfg.print_every == 0:
             log.info(line)
             self.unprinted_s = self.unprinted_steps = 0
         if self.iteration % self.cfg.checkpoint_every == 0 or self.finished():

@@ -15,25 +15,14 @@ compile it asks for happens before timing. Each figure is the median of ``--repe
 
 import argparse
 import logging
-import statistics
-import time
 
 import torch
 from hydra import compose, initialize_config_dir
 
 import torchsim
-import torchsim.progress
+from _timing import median_rate
 from torchsim.algos.ppo import PPO
-from torchsim.train import CONFIG_DIR
-
-
-def median_time(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+from torchsim.train import CONFIG_DIR, prepare
 
 
 def main():
@@ -45,12 +34,8 @@ def main():
         cfg = compose(config_name="config", overrides=args.overrides)
     if cfg.algo.name != "ppo":
         raise SystemExit("bench_training.py times the PPO recipe (algo=ppo)")
-    if cfg.threads is not None:
-        torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
-    torchsim.progress.announce_torch_compiles()
-    torchsim.compile_substeps(cfg.compile)  # as torchsim.train does
+    prepare(cfg)
     ppo = PPO(cfg)
     env, a = ppo.env.base_env, cfg.algo
     frames = a.num_envs * a.unroll
@@ -76,16 +61,17 @@ def main():
     data = next(batches)  # compiles the step (and, with it, everything the first batch needs)
     engine()
     ppo.update(data.clone(), lambda *args: None)  # compiles the loss
-    rows = {"engine alone (torchsim.step)": a.num_envs * a.unroll / median_time(engine, args.repeats),
-            "env alone (env.step + transforms)": a.num_envs * a.unroll / median_time(env_steps, args.repeats),
-            "collector (env + policy)": frames / median_time(lambda: next(batches), args.repeats),
-            "learner (PPO.update)": frames / median_time(lambda: ppo.update(data.clone(), lambda *args: None),
-                                                         args.repeats)}
+    def rate(fn):  # one call per repeat: a call is already a whole batch
+        return median_rate(fn, frames, args.repeats, min_seconds=0)
+
+    rows = {"engine alone (torchsim.step)": rate(engine), "env alone (env.step + transforms)": rate(env_steps),
+            "collector (env + policy)": rate(lambda: next(batches)),
+            "learner (PPO.update)": rate(lambda: ppo.update(data.clone(), lambda *args: None))}
 
     def iteration():
         ppo.update(next(batches), lambda *args: None)
 
-    rows["whole loop (collector + learner)"] = frames / median_time(iteration, args.repeats)
+    rows["whole loop (collector + learner)"] = rate(iteration)
     engine_rate = rows["engine alone (torchsim.step)"]
     print("\n| stage | env-steps/s | of engine alone |\n|---|---|---|")
     for name, rate in rows.items():

@@ -41,21 +41,20 @@ def announce(what: str):
 def announce_torch_compiles() -> None:
     """Announce every ``torch.compile`` compilation in this process (through dynamo's start and end callbacks),
     naming the function being compiled; installs itself once."""
-    if _open:
+    global _installed
+    if _installed:
         return
     from torch._dynamo.callback import callback_handler
 
-    def start(args):
-        _open[0] = contextlib.ExitStack()
-        _open[0].enter_context(announce(f"{_compiled_function_name()} (torch.compile {args.compile_id})"))
-
-    callback_handler.register_start_callback(start)
-    callback_handler.register_end_callback(lambda args: _open[0].close())
-    _open.append(contextlib.ExitStack())
+    callback_handler.register_start_callback(lambda args: _in_progress.enter_context(
+        announce(f"{_compiled_function_name()} (torch.compile {args.compile_id})")))
+    callback_handler.register_end_callback(lambda args: _in_progress.close())
+    _installed = True
 
 
+_installed = False
 #: The announcement of the compilation in progress (dynamo compiles one frame at a time).
-_open: list[contextlib.ExitStack] = []
+_in_progress = contextlib.ExitStack()
 
 
 def _compiled_function_name() -> str:

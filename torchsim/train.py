@@ -25,13 +25,18 @@ RECIPES = {"ppo": ppo.train, "sac": sac.train}
 
 def run(cfg: DictConfig, out_dir) -> Run:
     """Run the recipe ``cfg.algo.name`` with ``cfg``, writing into ``out_dir``; return the finished run."""
+    prepare(cfg)
+    return RECIPES[cfg.algo.name](cfg, out_dir)
+
+
+def prepare(cfg: DictConfig) -> None:
+    """The process-wide settings a run of ``cfg`` uses: compile announcements, threads, seed, compiled step."""
     torchsim.progress.announce_torch_compiles()
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # its storage-allocation notices are not progress
     if cfg.threads is not None:
         torch.set_num_threads(cfg.threads)
     torch.manual_seed(cfg.seed)
     torchsim.compile_substeps(cfg.compile)
-    return RECIPES[cfg.algo.name](cfg, out_dir)
 
 
 @hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
