@@ -31,7 +31,9 @@ class PPO:
         self.gae = GAE(gamma=a.gamma, lmbda=a.gae_lambda, value_network=self.critic, average_gae=False,
                        device=device)
         self.gae.set_keys(reward="scaled_reward")  # make_env's RewardScaling writes it beside the task's reward
-        self.optim = torch.optim.Adam(self.loss_module.parameters(), lr=a.lr, eps=1e-5)
+        # fused: one kernel for the whole parameter list instead of ~10 small ops per tensor (measured 0.7 -> 0.1 ms
+        # of a 5 ms minibatch step on the main job)
+        self.optim = torch.optim.Adam(self.loss_module.parameters(), lr=a.lr, eps=1e-5, fused=True)
         frames = a.num_envs * a.unroll
         self.collector = Collector(self.env, self.actor, frames_per_batch=frames, total_frames=-1, device=device,
                                    auto_register_policy_transforms=False)
@@ -49,7 +51,10 @@ class PPO:
         a = self.cfg.algo
         with torch.no_grad():
             self.gae(data)
-        self.batches.extend(data.reshape(-1))
+        # only what the loss reads once advantages are in: sampling indexes every leaf of what is stored
+        k = self.loss_module.tensor_keys
+        inputs = {*self.actor.in_keys, *self.critic.in_keys, k.action, k.sample_log_prob, k.advantage, k.value_target}
+        self.batches.extend(data.select(*inputs).reshape(-1))
         for _ in range(a.epochs):
             for minibatch in self.batches:  # one pass, without replacement
                 losses = self.loss_fn(minibatch)
