@@ -57,8 +57,8 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     """The task batched over ``num_envs`` with running observation normalisation (``RunningNorm``, statistics over
     the batch too), episode return (``episode_reward``) and length (``step_count``); a ``train`` env also emits
     ``scaled_reward`` (``cfg.algo.reward_scale`` times the reward) and staggers its first episodes if
-    ``cfg.stagger_episodes``. ``like``: an env whose System this one shares (with the same
-    ``num_envs``, its compiled step too)."""
+    ``cfg.stagger_episodes``. ``like``: an env whose System this one shares, and with it
+    the compiled step (for any ``num_envs`` above 1)."""
     base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length,
                               stagger_episodes=train and cfg.stagger_episodes,
                               system=None if like is None else like.base_env.base_sys)

@@ -55,6 +55,24 @@ def test_row_graph_equals_substep(path):
     assert moved > 1e-4 and worst < 1e-11
 
 
+def test_one_row_graph_serves_every_batch():
+    """A row graph reads its batch size from its inputs: built from 3 envs, it steps 5 and 2 others (inputs with
+    one value for all envs, the last axis 1, stay so) to float64 rounding of the substep at those batches."""
+    sys, leaves, spec, h = _substep_inputs(ANT, batch=3)
+
+    def substep(*flat):
+        bodies, ctrl, terms = pytree.tree_unflatten(list(flat), spec)
+        return tuple(pipeline.SUBSTEP["spring"](sys, bodies, ctrl, terms, h))
+
+    graph = rows.row_graph(substep, leaves)
+    for batch in (5, 2):
+        _, others, other_spec, _ = _substep_inputs(ANT, batch=batch, seed=batch)
+        assert other_spec == spec
+        expected, got = substep(*others), graph(*others)
+        assert all(x.shape[-1] == batch for x in got)
+        assert max((a - b).abs().max().item() for a, b in zip(expected, got)) < 1e-11
+
+
 def test_system_key_follows_values():
     """A row graph bakes the System in, so its key changes when a tensor of it is edited in place or replaced."""
     sys = torchsim.load_mjcf(str(ANT), dtype=F64)

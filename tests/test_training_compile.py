@@ -30,14 +30,15 @@ def eager_afterwards():
 
 
 def test_evaluation_reuses_the_training_graph(tmp_path, caplog, eager_afterwards):
-    """PPO with ``compile=true``: the training env compiles the step (its terms, its row-graph substep, its end) once;
-    the evaluation env, built like the training env (``eval.episodes`` defaults to ``algo.num_envs``), compiles
-    nothing more, though it is evaluated at the first and the last iteration."""
+    """PPO with ``compile=true``: the training env compiles the step (its terms, its row-graph substep, its end) once,
+    for any batch size; the evaluation env, with another batch size and the training env's System, compiles nothing
+    more, though it is evaluated at the first and the last iteration."""
     cfg = config("algo=ppo", "env=inverted_pendulum", "algo.num_envs=8", "algo.unroll=2", "algo.minibatches=2",
-                 "budget.env_steps=32", "eval.max_steps=5", *QUIET, "compile=true")
+                 "budget.env_steps=32", "eval.max_steps=5", "eval.episodes=3", *QUIET, "compile=true")
     with caplog.at_level(logging.INFO, logger="torchsim"):
         trained = run(cfg, tmp_path)
-    assert len(trained.history["eval"]) == 2 and trained.eval_env.batch_size == trained.train_env.batch_size
+    assert len(trained.history["eval"]) == 2
+    assert (trained.eval_env.batch_size, trained.train_env.batch_size) == ((3,), (8,))
     started = [r.getMessage() for r in caplog.records if r.getMessage().startswith("compiling ")]
     physics = [m for m in started if "row graph" in m or "_step_terms" in m or "finish" in m]
     assert len([m for m in physics if "row graph" in m]) == 1, started

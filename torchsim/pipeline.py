@@ -117,6 +117,7 @@ def _row_substeps(options: dict, calls: dict, sys: System, state: State, ctrl: t
     substeps as one ``(rows, B)`` tensor, the graph's one output."""
     h = sys.timestep / sys.substeps
     bodies, ctrl = _to_lanes(state, ctrl)
+    _batch_dynamic(state[:4], bodies)
     inputs, spec = pytree.tree_flatten((ctrl, calls["terms"](sys, bodies, h)))
     nones = [x is None for x in inputs]
     given = [x.contiguous() for x in inputs if x is not None]  # the layout the graph is compiled for
@@ -131,7 +132,21 @@ def _row_substeps(options: dict, calls: dict, sys: System, state: State, ctrl: t
     substep = _row_graph(options, sys, substep_of_rows, [poses, *given])
     for _ in range(sys.substeps):
         poses = substep(poses, *given)
-    return calls["finish"](sys, state, Bodies(*_split_poses(poses, shapes)))
+    bodies = Bodies(*_split_poses(poses, shapes))
+    _batch_dynamic(state, bodies)
+    return calls["finish"](sys, state, bodies)
+
+
+def _batch_dynamic(batch_first, lanes_last) -> None:
+    """Mark the batch axis of a row-graph step's tensors (``batch_first``: public state, ``lanes_last``: lanes
+    tensors) dynamic for dynamo, as the row graph's is: the step's terms and end then compile once for every batch
+    of more than one env, so that an evaluation batch shares the training batch's compiled step."""
+    for x in batch_first:
+        if x.shape[0] > 1:
+            torch._dynamo.maybe_mark_dynamic(x, 0)
+    for x in lanes_last:
+        if x.shape[-1] > 1:
+            torch._dynamo.maybe_mark_dynamic(x, x.ndim - 1)
 
 
 def _join_poses(bodies: Bodies) -> torch.Tensor:
@@ -140,7 +155,8 @@ def _join_poses(bodies: Bodies) -> torch.Tensor:
 
 
 def _split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
-    return [x.view(shape) for x, shape in zip(poses.split([shape[:-1].numel() for shape in shapes]), shapes)]
+    return [x.view(*shape[:-1], poses.shape[-1])  # the batch size of poses: row graphs trace at another
+            for x, shape in zip(poses.split([shape[:-1].numel() for shape in shapes]), shapes)]
 
 
 def _records_grad(sys: System, state: State, ctrl: torch.Tensor) -> bool:
@@ -207,8 +223,8 @@ def _rows_supported(sys: System) -> bool:
 
 def _row_graph(options: dict, sys: System, substep, args: list):
     """``substep`` (of ``sys``'s method, as a function of the tensors ``args``) as a compiled row graph for inputs
-    like ``args``; built on first use for this System's values and these shapes."""
-    key = (rows.system_key(sys), tuple((x.shape, x.dtype) for x in args))
+    like ``args`` with any number of envs; built on first use for this System's values and these shapes."""
+    key = (rows.system_key(sys), tuple((x.shape[:-1], rows.per_env(x), x.dtype) for x in args))
     entry = _ROW_GRAPHS.get(key)
     if entry is None:
         with _ROW_LOCK:  # steps on several threads: one builds it
@@ -241,8 +257,9 @@ def compile_substeps(enabled: bool = True, dynamic: bool = False, vectorize: boo
     runs its substep as a row graph (``torchsim.rows``: every small axis unrolled, the model's constants folded
     in, one loop over the whole batch on every intra-op thread), compiled by inductor directly; a Python loop calls
     it ``sys.substeps`` times between the compiled step terms and step end. A row graph belongs to one System's
-    values and one batch size: another System, a tensor of it edited in place, or another batch size builds and
-    compiles a new one (about 2 minutes for the ant; the last ``ROW_GRAPHS_KEPT`` are kept). Other cases keep the
+    values: another System, or a tensor of it edited in place, builds and compiles a new one (about 2 minutes for
+    the ant; the last ``ROW_GRAPHS_KEPT`` are kept). It serves every batch of more than one env, and the step terms
+    and end are compiled with a dynamic batch size too; a batch of one env compiles its own. Other cases keep the
     paths below.
 
     For the methods in ``LOOPED`` (spring) the step compiles as one graph in which the substeps are a

@@ -23,11 +23,12 @@ def cache_dir() -> pathlib.Path:
 
 
 def content_key(sys, args: list, options: dict) -> str:
-    """A digest of everything a compiled row graph depends on: ``sys``'s values, the inputs' shapes, strides and
-    dtypes, the inductor ``options``, the torch version and the source of every torchsim module."""
+    """A digest of everything a compiled row graph depends on: ``sys``'s values, the inputs' shapes (but not the
+    batch size, which the graph reads from its inputs) and dtypes, the inductor ``options``, the torch version and
+    the source of every torchsim module."""
     digest = hashlib.sha256()
     for value in (torch.__version__, sorted(options.items()),
-                  [(tuple(x.shape), x.stride(), str(x.dtype)) for x in args]):
+                  [(tuple(x.shape[:-1]), x.shape[-1] > 1, str(x.dtype)) for x in args]):
         digest.update(repr(value).encode())
     for source in sorted(pathlib.Path(__file__).parent.rglob("*.py")):
         digest.update(source.read_bytes())

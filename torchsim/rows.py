@@ -9,8 +9,9 @@ mode of 0 removes the terms it multiplies). What is left is elementwise ops on r
 single loop over the batch whose intermediates stay in registers and on the stack.
 
 The System's tensors are baked into the graph as constants, so a row graph belongs to one System's values:
-:func:`system_key` says when it must be rebuilt. Shapes must be static; batched (per-env) System parameters are not
-supported (``torchsim.pipeline`` keeps its loop-nest code for those).
+:func:`system_key` says when it must be rebuilt. The small axes are static; the batch size is not, so one graph serves
+a training batch and a small evaluation batch alike. Batched (per-env) System parameters are not supported
+(``torchsim.pipeline`` keeps its loop-nest code for those).
 """
 
 import math
@@ -20,7 +21,7 @@ import numpy as np
 import torch
 from torch._subclasses.fake_tensor import FakeTensorMode
 from torch.fx import GraphModule, Interpreter
-from torch.fx.experimental.symbolic_shapes import ShapeEnv
+from torch.fx.experimental.symbolic_shapes import DimDynamic, ShapeEnv, StatelessSymbolicContext
 from torch.fx.experimental.proxy_tensor import disable_proxy_modes_tracing, make_fx
 
 from torchsim import math as tmath
@@ -327,22 +328,38 @@ class _RowInterpreter(Interpreter):
         return Rows(out)
 
 
+#: The batch size a row graph is traced at. Every size equal to it in the traced graph is then replaced by the
+#: inputs' batch size, so that one graph serves every batch: a prime that no model axis is likely to have, so that
+#: no other size is mistaken for it (a constant of this size left in the graph raises instead).
+TRACE_BATCH = 1031
+
+
+def per_env(x) -> bool:
+    """Whether lanes tensor ``x`` holds one value per env (its last axis the batch, of more than one env); the
+    others hold one value for all envs (last axis 1)."""
+    return x is not None and x.shape[-1] > 1
+
+
 def row_graph(fn, args: list) -> GraphModule:
     """``fn(*args) -> tuple of tensors``, for lanes tensors ``args`` (``None`` passes through), as a graph of row
-    ops with the same inputs and outputs. Traced once at ``args``' shapes; tensors ``fn`` closes over become
-    constants."""
+    ops with the same inputs and outputs, for any batch size: the last axis of the ``per_env`` inputs. Traced once
+    at ``args``' other shapes; tensors ``fn`` closes over become constants."""
+    # traced on copies of env 0 at TRACE_BATCH envs: the physics has no data-dependent branches, so only the
+    # shapes matter, and those of env 0 keep every intermediate finite
+    probes = [x[..., :1].expand(*x.shape[:-1], TRACE_BATCH).contiguous() if per_env(x) else x for x in args]
     with tmath.component_formulas():  # the per-component forms torch.compile traces
-        lanes_graph = make_fx(fn)(*args)
+        lanes_graph = make_fx(fn)(*probes)
     lanes_graph.graph.eliminate_dead_code()
-    outputs = fn(*args)
+    outputs = fn(*probes)
 
     def rows_fn(*inputs):
         rows = [x if x is None else Rows(_input_cells(x)) for x in inputs]
         results = _RowInterpreter(lanes_graph).run(*rows)
         return tuple(_stack_rows(r.cells, like) for r, like in zip(results, outputs))
 
-    graph = make_fx(rows_fn)(*args)
+    graph = make_fx(rows_fn)(*probes)
     graph.graph.eliminate_dead_code()
+    _batch_sizes_symbolic(graph, args)
     for node in graph.graph.nodes:  # every constant its own storage: a higher-order op rejects aliased inputs
         if node.op == "get_attr" and isinstance(getattr(graph, node.target), torch.Tensor):
             setattr(graph, node.target, getattr(graph, node.target).clone())
@@ -350,9 +367,35 @@ def row_graph(fn, args: list) -> GraphModule:
     return graph
 
 
+def _batch_sizes_symbolic(graph: GraphModule, args: list) -> None:
+    """Replace ``TRACE_BATCH`` in the size arguments of ``graph``'s ops (views, expands, fills) by the batch size
+    of its first ``per_env`` input, read when the graph runs."""
+    for node in graph.graph.nodes:
+        if node.op == "get_attr" and TRACE_BATCH in getattr(graph, node.target).shape:
+            raise NotImplementedError("row graphs cannot hold a constant with a batch axis (one value per env)")
+    first = next((i for i, x in enumerate(args) if per_env(x)), None)
+    if first is None:  # a batch of one env: nothing to replace
+        return
+    placeholder = [n for n in graph.graph.nodes if n.op == "placeholder"][first]
+    with graph.graph.inserting_after(placeholder):
+        batch = graph.graph.call_function(aten.sym_size.int, (placeholder, args[first].ndim - 1))
+
+    def sizes(a):
+        if isinstance(a, (list, tuple)):
+            return type(a)(batch if type(v) is int and v == TRACE_BATCH else sizes(v) for v in a)
+        return a
+
+    for node in graph.graph.nodes:
+        if node.op == "call_function" and node is not batch:
+            node.args = tuple(sizes(a) for a in node.args)
+            node.kwargs = {k: sizes(v) for k, v in node.kwargs.items()}
+
+
 def compile_row_graph(fn, args: list, options: dict, content_key: str | None = None):
-    """``row_graph(fn, args)`` compiled by inductor (``options``) for exactly the shapes, strides and dtypes of the
-    tensors ``args``; ``fn`` returns one lanes tensor ``(*S, B)``, and so does the compiled function.
+    """``row_graph(fn, args)`` compiled by inductor (``options``) for the shapes, strides and dtypes of the tensors
+    ``args`` except their batch size (the last axis of the ``per_env`` ones), which the compiled code reads from its
+    inputs: one compiled graph serves every batch of more than one env. ``fn`` returns
+    one lanes tensor ``(*S, B)``, and so does the compiled function.
 
     One output, not several: inductor then writes each row once from its single loop, where separate outputs cost
     extra copy loops and an allocation each (speed pass 9). The compiled function has no guards, so a caller that
@@ -372,9 +415,13 @@ def compile_row_graph(fn, args: list, options: dict, content_key: str | None = N
             node.meta.pop("tensor_meta", None)
         if content_key is not None:
             graph = row_cache.store(content_key, graph)
-    # fake inputs with a shape environment: without one, inductor's on-disk graph cache is bypassed
+    # fake inputs with a shape environment (without one, inductor's on-disk graph cache is bypassed), their batch
+    # axis symbolic
     fake_mode = FakeTensorMode(allow_non_fake_inputs=True, shape_env=ShapeEnv())
-    compiled = inductor_compile(graph, [fake_mode.from_tensor(x, static_shapes=True) for x in args], options=options)
+    fakes = [fake_mode.from_tensor(x, symbolic_context=StatelessSymbolicContext(
+        dynamic_sizes=[DimDynamic.STATIC] * (x.ndim - 1) + [DimDynamic.DYNAMIC if per_env(x) else DimDynamic.STATIC]))
+        for x in args]
+    compiled = inductor_compile(graph, fakes, options=options)
     return lambda *inputs: compiled(*inputs)[0]
 
 
