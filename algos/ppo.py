@@ -51,13 +51,16 @@ class PPO:
         return {"loss": self.loss_module, "optim": self.optim, "obs_norm": obs_norm(self.env)}
 
     def update(self, data, check_update) -> dict:
-        """``epochs`` passes over ``data`` (num_envs, unroll); ``check_update(losses, grad_norm, minibatch)`` runs
-        before every optimiser step. Returns the last minibatch's loss terms."""
+        """Up to ``epochs`` passes over ``data`` (num_envs, unroll), fewer if an epoch's mean approximate KL from
+        the collecting policy exceeds ``target_kl``; ``check_update(losses, grad_norm, minibatch)`` runs before
+        every optimiser step. Returns the last minibatch's loss terms, the last epoch's mean KL and the epochs
+        run."""
         a = self.cfg.algo
         with torch.no_grad():
             self.gae(data)
         self.batches.extend(data.select(*self.loss_inputs).reshape(-1))
-        for _ in range(a.epochs):
+        for epoch in range(1, a.epochs + 1):
+            kl = []
             for minibatch in self.batches:  # one pass, without replacement
                 losses = self.loss_fn(minibatch)
                 loss = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
@@ -66,7 +69,12 @@ class PPO:
                 grad_norm = nn.utils.clip_grad_norm_(self.loss_module.parameters(), a.max_grad_norm or float("inf"))
                 check_update(losses, grad_norm, minibatch)
                 self.optim.step()
-        return losses.select("loss_objective", "loss_critic", "loss_entropy").detach()
+                kl.append(losses["kl_approx"].detach())
+            kl = torch.stack(kl).mean()
+            if a.target_kl is not None and kl > a.target_kl:
+                break
+        return {**losses.select("loss_objective", "loss_critic", "loss_entropy").detach(), "kl_approx": kl,
+                "epochs": epoch}
 
 
 def train(cfg, out_dir) -> Run:

@@ -230,8 +230,9 @@ def _row_graph(options: dict, sys: System, substep, args: list):
         with _ROW_LOCK:  # steps on several threads: one builds it
             entry = _ROW_GRAPHS.get(key)
             if entry is None:
+                batches = "any batch" if rows.per_env(args[0]) else "batch 1"
                 with progress.announce(f"the {sys.method} substep as a row graph ({sys.num_bodies} bodies, "
-                                       f"batch {args[0].shape[-1]}, {args[0].dtype})"):
+                                       f"{batches}, {args[0].dtype})"):
                     graph = rows.compile_row_graph(substep, args, options, row_cache.content_key(sys, args, options))
                     entry = _ROW_GRAPHS[key] = (sys, graph)
                 while len(_ROW_GRAPHS) > ROW_GRAPHS_KEPT:
