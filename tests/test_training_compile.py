@@ -34,7 +34,8 @@ def test_evaluation_reuses_the_training_graph(tmp_path, caplog, eager_afterwards
     for any batch size; the evaluation env, with another batch size and the training env's System, compiles nothing
     more, though it is evaluated at the first and the last iteration."""
     cfg = config("algo=ppo", "env=inverted_pendulum", "algo.num_envs=8", "algo.unroll=2", "algo.minibatches=2",
-                 "budget.env_steps=32", "eval.max_steps=5", "eval.episodes=3", *QUIET, "compile=true")
+                 "budget.env_steps=32", "eval.max_steps=5", "eval.episodes=3", "eval.at_start=true", *QUIET,
+                 "compile=true")
     with caplog.at_level(logging.INFO, logger="torchsim"):
         trained = run(cfg, tmp_path)
     assert len(trained.history["eval"]) == 2
