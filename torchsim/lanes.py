@@ -49,3 +49,9 @@ def components_last(fn, out_comps: int = 1):
         return out.movedim(tuple(range(out_comps)), tuple(range(out.ndim - out_comps, out.ndim)))
 
     return wrapped
+
+
+def per_env(x: torch.Tensor | None) -> bool:
+    """Whether lanes tensor ``x`` holds one value per env (its last axis the batch, of more than one env); the
+    others hold one value for all envs (last axis 1)."""
+    return x is not None and x.shape[-1] > 1

@@ -117,7 +117,7 @@ def _row_substeps(options: dict, calls: dict, sys: System, state: State, ctrl: t
     substeps as one ``(rows, B)`` tensor, the graph's one output."""
     h = sys.timestep / sys.substeps
     bodies, ctrl = _to_lanes(state, ctrl)
-    _batch_dynamic(state[:4], bodies)
+    _batch_dynamic((), bodies)  # the step terms' only per-env inputs
     inputs, spec = pytree.tree_flatten((ctrl, calls["terms"](sys, bodies, h)))
     nones = [x is None for x in inputs]
     given = [x.contiguous() for x in inputs if x is not None]  # the layout the graph is compiled for
@@ -145,7 +145,7 @@ def _batch_dynamic(batch_first, lanes_last) -> None:
         if x.shape[0] > 1:
             torch._dynamo.maybe_mark_dynamic(x, 0)
     for x in lanes_last:
-        if x.shape[-1] > 1:
+        if lanes.per_env(x):
             torch._dynamo.maybe_mark_dynamic(x, x.ndim - 1)
 
 
@@ -224,13 +224,13 @@ def _rows_supported(sys: System) -> bool:
 def _row_graph(options: dict, sys: System, substep, args: list):
     """``substep`` (of ``sys``'s method, as a function of the tensors ``args``) as a compiled row graph for inputs
     like ``args`` with any number of envs; built on first use for this System's values and these shapes."""
-    key = (rows.system_key(sys), tuple((x.shape[:-1], rows.per_env(x), x.dtype) for x in args))
+    key = (rows.system_key(sys), tuple((x.shape[:-1], lanes.per_env(x), x.dtype) for x in args))
     entry = _ROW_GRAPHS.get(key)
     if entry is None:
         with _ROW_LOCK:  # steps on several threads: one builds it
             entry = _ROW_GRAPHS.get(key)
             if entry is None:
-                batches = "any batch" if rows.per_env(args[0]) else "batch 1"
+                batches = "any batch" if lanes.per_env(args[0]) else "batch 1"
                 with progress.announce(f"the {sys.method} substep as a row graph ({sys.num_bodies} bodies, "
                                        f"{batches}, {args[0].dtype})"):
                     graph = rows.compile_row_graph(substep, args, options, row_cache.content_key(sys, args, options))

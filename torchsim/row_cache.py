@@ -14,7 +14,7 @@ import warnings
 import torch
 from torch.fx import GraphModule
 
-from torchsim import progress
+from torchsim import lanes, progress
 
 
 def cache_dir() -> pathlib.Path:
@@ -28,7 +28,7 @@ def content_key(sys, args: list, options: dict) -> str:
     the source of every torchsim module."""
     digest = hashlib.sha256()
     for value in (torch.__version__, sorted(options.items()),
-                  [(tuple(x.shape[:-1]), x.shape[-1] > 1, str(x.dtype)) for x in args]):
+                  [(tuple(x.shape[:-1]), lanes.per_env(x), str(x.dtype)) for x in args]):
         digest.update(repr(value).encode())
     for source in sorted(pathlib.Path(__file__).parent.rglob("*.py")):
         digest.update(source.read_bytes())

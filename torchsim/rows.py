@@ -25,6 +25,7 @@ from torch.fx.experimental.symbolic_shapes import DimDynamic, ShapeEnv, Stateles
 from torch.fx.experimental.proxy_tensor import disable_proxy_modes_tracing, make_fx
 
 from torchsim import math as tmath
+from torchsim.lanes import per_env
 from torchsim import row_cache
 
 aten = torch.ops.aten
@@ -332,12 +333,6 @@ class _RowInterpreter(Interpreter):
 #: inputs' batch size, so that one graph serves every batch: a prime that no model axis is likely to have, so that
 #: no other size is mistaken for it (a constant of this size left in the graph raises instead).
 TRACE_BATCH = 1031
-
-
-def per_env(x) -> bool:
-    """Whether lanes tensor ``x`` holds one value per env (its last axis the batch, of more than one env); the
-    others hold one value for all envs (last axis 1)."""
-    return x is not None and x.shape[-1] > 1
 
 
 def row_graph(fn, args: list) -> GraphModule:
