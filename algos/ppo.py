@@ -35,11 +35,15 @@ class PPO:
         # of a 5 ms minibatch step on the main job)
         self.optim = torch.optim.Adam(self.loss_module.parameters(), lr=a.lr, eps=1e-5, fused=True)
         frames = a.num_envs * a.unroll
+        if frames % a.minibatches:
+            raise ValueError(f"algo.minibatches ({a.minibatches}) must divide the env steps per iteration "
+                             f"(num_envs x unroll = {frames}): every minibatch has the loss graph's shape")
         self.collector = Collector(self.env, self.actor, frames_per_batch=frames, total_frames=-1, device=device,
                                    auto_register_policy_transforms=False)
         self.batches = ReplayBuffer(storage=LazyTensorStorage(frames, device=device),
                                     sampler=SamplerWithoutReplacement(), batch_size=frames // a.minibatches)
         self.loss_fn = maybe_compile(self.loss_module, cfg)
+        self.updates = 0
         # what the loss reads once advantages are in; the minibatch buffer holds only these, since sampling indexes
         # every stored leaf
         k = self.loss_module.tensor_keys
@@ -59,6 +63,17 @@ class PPO:
         with torch.no_grad():
             self.gae(data)
         self.batches.extend(data.select(*self.loss_inputs).reshape(-1))
+        # Once the first update has compiled the loss (checking every guard), later ones feed it minibatches of the
+        # same shapes, dtypes and modules, so only the guards that tell cached graphs apart need to run: dynamo's
+        # full check cost ~0.6 ms of a ~5 ms minibatch step (measured: update 730 -> 590 ms on the main job).
+        with torch.compiler.set_stance(skip_guard_eval_unsafe=self.updates > 0):
+            losses, kl, epoch = self._epochs(a, check_update)
+        self.updates += 1
+        return {**losses.select("loss_objective", "loss_critic", "loss_entropy").detach(), "kl_approx": kl,
+                "epochs": epoch}
+
+    def _epochs(self, a, check_update):
+        """The minibatch Adam steps of one update: (last minibatch's losses, last epoch's mean KL, epochs run)."""
         for epoch in range(1, a.epochs + 1):
             kl = []
             for minibatch in self.batches:  # one pass, without replacement
@@ -73,8 +88,7 @@ class PPO:
             kl = torch.stack(kl).mean()
             if a.target_kl is not None and kl > a.target_kl:
                 break
-        return {**losses.select("loss_objective", "loss_critic", "loss_entropy").detach(), "kl_approx": kl,
-                "epochs": epoch}
+        return losses, kl, epoch
 
 
 def train(cfg, out_dir) -> Run:

@@ -64,10 +64,11 @@ def load_mjcf(
         joint_stiffness: spring method only: fraction of a joint's error its spring removes per substep
             (gain ``stiffness / h^2 K^-1``, ``K`` the joint's inverse-inertia block).
         joint_damping: spring method only: fraction of a joint's error rate its damper removes per substep.
-        contact_timeconst: spring method only: time constant [s] with which penetration is removed, as a
-            separating speed ``depth / timeconst`` (Baumgarte; 0.02 s is MuJoCo's default ``solref`` time
-            constant). A per-substep fraction instead would launch bodies that start interpenetrating at
-            ``depth / h``. XPBD removes penetration in full and zeroes the contacts' normal speed.
+        contact_timeconst: spring method only: MuJoCo's ``solref`` time constant [s] (0.02 s, its default):
+            penetration is removed at a separating speed ``depth / (e timeconst)``, the peak speed of MuJoCo's
+            critically damped contact pushing out a body that starts that deep (Baumgarte). A per-substep
+            fraction instead would launch bodies that start interpenetrating at ``depth / h``. XPBD removes
+            penetration in full and zeroes the contacts' normal speed.
         xpbd_iterations: XPBD only: projection passes (contacts, then joint colours) per substep.
         max_speed, max_distance: an env whose body speed [m/s] or distance from the origin [m] exceeds these is
             flagged as diverged.

@@ -22,12 +22,12 @@ def cache_dir() -> pathlib.Path:
     return pathlib.Path(os.environ.get("TORCHSIM_CACHE_DIR") or pathlib.Path.home() / ".cache" / "torchsim")
 
 
-def content_key(sys, args: list, options: dict) -> str:
+def content_key(sys, args: list, options: dict, layout: tuple = ()) -> str:
     """A digest of everything a compiled row graph depends on: ``sys``'s values, the inputs' shapes (but not the
-    batch size, which the graph reads from its inputs) and dtypes, the inductor ``options``, the torch version and
-    the source of every torchsim module."""
+    batch size, which the graph reads from its inputs) and dtypes, the ``layout`` of the leaves they pack, the
+    inductor ``options``, the torch version and the source of every torchsim module."""
     digest = hashlib.sha256()
-    for value in (torch.__version__, sorted(options.items()),
+    for value in (torch.__version__, sorted(options.items()), layout,
                   [(tuple(x.shape[:-1]), lanes.per_env(x), str(x.dtype)) for x in args]):
         digest.update(repr(value).encode())
     for source in sorted(pathlib.Path(__file__).parent.rglob("*.py")):

@@ -6,7 +6,7 @@ springs and heavy ones stiff springs, and the joint error scales as ``h^2``. The
 contact impulses) come from the poses at the step's start and are held for its substeps (:class:`StepTerms`): a
 sixth fewer element ops per substep on the ant (15,901 instead of 18,951), every accuracy check unchanged.
 Contacts take Brax's impulse form: a normal impulse removing approaching velocity plus a Baumgarte term
-``depth / timeconst``, Coulomb-capped friction, impulses averaged over a body's active contacts.
+``depth / (e timeconst)``, Coulomb-capped friction, impulses averaged over a body's active contacts.
 
 Tensors are in the lanes layout (``torchsim.lanes``): ext-indexed body vectors ``(3, N + 1, B)``, dof quantities
 ``(D, B)``.
@@ -105,8 +105,13 @@ def limit_forces(sys: System, q: torch.Tensor, qd: torch.Tensor, w: torch.Tensor
 
 def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: float,
                      rot: torch.Tensor | None = None) -> Bodies:
-    """Velocity impulses stopping approach and separating at ``depth / contact_timeconst``, Coulomb-capped friction;
-    ``rot``: the bodies' rotation matrices, if at hand (``collision.contacts``).
+    """Velocity impulses stopping approach and separating at ``depth / (e contact_timeconst)``, Coulomb-capped
+    friction; ``rot``: the bodies' rotation matrices, if at hand (``collision.contacts``).
+
+    The separating speed is the peak speed of MuJoCo's critically damped soft contact (``solref`` time constant
+    ``tau``) pushing out a body that starts ``depth`` deep: ``depth t / tau^2 exp(-t / tau)``, largest at
+    ``t = tau``. With ``depth / tau`` (2.7x that) a sphere started 10 cm deep jumped 1.18 m where MuJoCo's rises
+    0.11 m, and 14% of the ant's reset poses launched the torso above its 1 m termination height (MuJoCo: 5%).
 
     Per contact, vectors are ``(3, C, B)`` and scalars ``(C, B)``."""
     con = contacts(sys, bodies, rot)
@@ -115,7 +120,7 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: 
     v_n = math.dot(v_rel, con.normal)
     active = (con.depth > 0).to(con.depth.dtype)
     w_n = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, con.normal)
-    j_n = active * torch.relu(-v_n + con.depth / sys.contact_timeconst) / w_n
+    j_n = active * torch.relu(-v_n + con.depth / (torch.e * sys.contact_timeconst)) / w_n
     v_t = v_rel - v_n * con.normal
     speed_t = math.safe_norm(v_t)
     tangent = v_t / speed_t
