@@ -57,11 +57,11 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     """The task batched over ``num_envs`` with running observation normalisation (``RunningNorm``, statistics over
     the batch too), episode return (``episode_reward``) and length (``step_count``); a ``train`` env also emits
     ``scaled_reward`` (``cfg.algo.reward_scale`` times the reward) and staggers its first episodes if
-    ``cfg.stagger_episodes``. ``like``: an env whose System this one shares, and with it
-    the compiled step (for any ``num_envs`` above 1)."""
+    ``cfg.stagger_episodes``. The physics runs compiled (``torchsim.Stepper``, strategy ``auto``) if ``cfg.compile``;
+    ``like``: an env whose stepper (System and compiled step) this one shares, for any ``num_envs`` above 1."""
+    stepper = like.base_env.stepper if like is not None else "auto" if cfg.compile else "eager"
     base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length,
-                              stagger_episodes=train and cfg.stagger_episodes,
-                              system=None if like is None else like.base_env.base_sys)
+                              stagger_episodes=train and cfg.stagger_episodes, stepper=stepper)
     norm = RunningNorm(in_keys=["observation"], decay=cfg.obs_norm_decay, eps=1e-4, reduce_batch_dims=True)
     transforms = [norm, RewardSum(), StepCounter()]
     if train:  # the losses learn from scaled_reward; reward (and episode_reward) stay the task's

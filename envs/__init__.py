@@ -4,26 +4,13 @@
 """
 
 import builtins
-import pathlib
 
-ASSETS_DIR = pathlib.Path(__file__).parent / "assets"
-
-
-def asset_path(name: str) -> pathlib.Path:
-    """Return the path of a bundled asset (e.g. ``"ant.xml"``); raise FileNotFoundError if missing."""
-    path = ASSETS_DIR / name
-    if not path.is_file():
-        available = sorted(p.name for p in ASSETS_DIR.iterdir() if p.is_file()) if ASSETS_DIR.is_dir() else []
-        raise FileNotFoundError(f"asset {name!r} not found in {ASSETS_DIR}; available: {available}")
-    return path
-
-
-from torchsim.envs.base import TorchsimEnv  # noqa: E402
-from torchsim.envs.locomotion import Ant, HalfCheetah, Hopper, Humanoid, Walker2d  # noqa: E402
-from torchsim.envs.manipulation import Pusher, Reacher  # noqa: E402
-from torchsim.envs.pendulums import InvertedDoublePendulum, InvertedPendulum  # noqa: E402
-from torchsim.envs.targets import Fetch, Grasp  # noqa: E402
-from torchsim.envs.ur5e import UR5eReach  # noqa: E402
+from torchsim.envs.base import ASSETS_DIR, TorchsimEnv, asset_path
+from torchsim.envs.locomotion import Ant, HalfCheetah, Hopper, Humanoid, Walker2d
+from torchsim.envs.manipulation import Pusher, Reacher
+from torchsim.envs.pendulums import InvertedDoublePendulum, InvertedPendulum
+from torchsim.envs.targets import Fetch, Grasp
+from torchsim.envs.ur5e import UR5eReach
 
 ENVS = {
     "ant": Ant, "halfcheetah": HalfCheetah, "humanoid": Humanoid, "reacher": Reacher, "hopper": Hopper,
@@ -40,7 +27,7 @@ def list() -> builtins.list[str]:  # noqa: A001 - the public name asked for: tor
 
 def make(name: str, num_envs: int = 1, device="cpu", **kwargs) -> TorchsimEnv:
     """Build env ``name`` with ``batch_size=(num_envs,)`` on ``device``; ``kwargs`` go to the env class
-    (``dtype``, ``episode_length``, ``native_autoreset``, ``method``, ``substeps``, ``stagger_episodes``)."""
+    (``dtype``, ``episode_length``, ``native_autoreset``, ``method``, ``substeps``, ``stagger_episodes``, ``stepper``)."""
     if name not in ENVS:
         raise ValueError(f"unknown env {name!r}; available: {', '.join(ENVS)}")
     return ENVS[name](num_envs, device=device, **kwargs)

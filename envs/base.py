@@ -9,6 +9,9 @@ syncs (no ``.item()``, no boolean indexing, no data-dependent Python branches), 
 ``step_and_maybe_reset`` trace into one graph.
 """
 
+import math
+import pathlib
+
 import mujoco
 import torch
 from tensordict import TensorDict, TensorDictBase
@@ -16,12 +19,31 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 import torchsim
-from torchsim.envs import asset_path
 from torchsim.io_urdf import urdf_to_mjcf
 from torchsim.state import State
 
+ASSETS_DIR = pathlib.Path(__file__).parent / "assets"
+
+
+def asset_path(name: str) -> pathlib.Path:
+    """Return the path of a bundled asset (e.g. ``"ant.xml"``); raise FileNotFoundError if missing."""
+    path = ASSETS_DIR / name
+    if not path.is_file():
+        available = sorted(p.name for p in ASSETS_DIR.iterdir() if p.is_file()) if ASSETS_DIR.is_dir() else []
+        raise FileNotFoundError(f"asset {name!r} not found in {ASSETS_DIR}; available: {available}")
+    return path
+
+
 #: Randomisable physical parameters and what they scale (see ``TorchsimEnv.set_physics``).
 PHYSICS_PARAMS = ("mass_scale", "friction_scale", "actuator_gain_scale")
+
+
+def ring_points(center: torch.Tensor, r_min: float, r_span: float) -> torch.Tensor:
+    """Points ``(n, 2)`` at a uniform random angle and a distance ``r_min + r_span U(0, 1)`` [m] from ``center
+    (n, 2)``: where the target tasks put their targets."""
+    radius = r_min + r_span * torch.rand_like(center[:, 0])
+    angle = 2.0 * math.pi * torch.rand_like(center[:, 0])
+    return center + radius[:, None] * torch.stack((torch.cos(angle), torch.sin(angle)), -1)
 
 
 def select_state(mask: torch.Tensor, new: State, old: State) -> State:
@@ -52,8 +74,9 @@ class TorchsimEnv(EnvBase):
             ``[0, episode_length)``, so first episodes are truncated at different times. Tasks that never end early
             otherwise run every env in the same phase of its episode, and a training batch of a few steps then
             holds one phase only (for training envs; evaluations want whole episodes).
-        system: the task's model, already loaded (another env's ``base_sys``): envs that share one System object
-            and batch size share its compiled step (an evaluation env beside a training env compiles nothing).
+        stepper: how the physics steps (``torchsim.Stepper``): ``"eager"`` (the reference step), ``"auto"`` (the
+            fastest compiled strategy for the model) or a strategy name; or another env's ``stepper``, whose System
+            and compiled step this env then shares (an evaluation env beside a training env compiles nothing).
     """
 
     #: The model asset in ``envs/assets``: MJCF (``.xml``) or URDF (``.urdf``, translated by ``urdf_to_mjcf``).
@@ -82,21 +105,22 @@ class TorchsimEnv(EnvBase):
 
     def __init__(self, num_envs: int = 1, *, device="cpu", dtype=torch.float32, episode_length: int = 1000,
                  native_autoreset: bool = False, method: str | None = None, substeps: int | None = None,
-                 stagger_episodes: bool = False, system: "torchsim.System | None" = None):
+                 stagger_episodes: bool = False, stepper: "str | torchsim.Stepper" = "eager"):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs}")
         super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
         xml = self._model_xml()
         self.mj_model = mujoco.MjModel.from_xml_string(xml)
-        if system is None:
+        if isinstance(stepper, str):
             system = torchsim.load_mjcf(xml, method=method or self.method, substeps=substeps or self.substeps,
                                         xpbd_iterations=self.xpbd_iterations, dtype=dtype, device=self.device)
-        elif (system.dtype, system.device) != (dtype, self.device) or method or substeps:
-            raise ValueError(f"{type(self).__name__}: a given system must be in the env's dtype and on its device "
-                             f"({dtype}, {self.device}; got {system.dtype}, {system.device}) and comes with its "
-                             "own method and substeps")
-        self.base_sys = system
-        self.sys = self.base_sys
+            stepper = torchsim.Stepper(system, stepper)
+        elif (stepper.sys.dtype, stepper.sys.device) != (dtype, self.device) or method or substeps:
+            raise ValueError(f"{type(self).__name__}: a given stepper's System must be in the env's dtype and on its "
+                             f"device ({dtype}, {self.device}; got {stepper.sys.dtype}, {stepper.sys.device}) and "
+                             "comes with its own method and substeps")
+        self.base_sys = stepper.sys
+        self.stepper = stepper
         self.episode_length = int(episode_length)
         self.stagger_episodes = bool(stagger_episodes)
         self.dt = self.frame_skip * self.sys.timestep
@@ -245,12 +269,17 @@ class TorchsimEnv(EnvBase):
         s = {k: torch.as_tensor(scales.get(k, 1.0), dtype=b.dtype, device=self.device).expand(self.batch_size)
              for k in PHYSICS_PARAMS}
         mass = s["mass_scale"][:, None]
-        self.sys = b.replace(
+        self.stepper = self.stepper.for_system(b.replace(
             body_mass=b.body_mass * mass, body_inertia=b.body_inertia * mass[..., None, None],
             act_gain=b.act_gain * s["actuator_gain_scale"][:, None],
             act_bias=b.act_bias * s["actuator_gain_scale"][:, None, None],
             contact_groups=tuple(g._replace(friction=g.friction * s["friction_scale"][:, None])
-                                 for g in b.contact_groups))
+                                 for g in b.contact_groups)))
+
+    @property
+    def sys(self) -> "torchsim.System":
+        """The System the env steps: ``base_sys``, with per-env parameters after ``set_physics``."""
+        return self.stepper.sys
 
     def _set_seed(self, seed: int | None) -> None:
         # The global generator: an explicit torch.Generator would break fullgraph compilation of the step.
@@ -286,7 +315,7 @@ class TorchsimEnv(EnvBase):
         before = self.state
         state = before
         for _ in range(self.frame_skip):
-            state = torchsim.step(self.sys, state, ctrl)
+            state = self.stepper(state, ctrl)
         state = state._replace(diverged=state.diverged | bad_action)
         reward = torch.where(state.diverged, 0.0, self._reward(before, state, ctrl))
         terminated = self._terminated(state) | state.diverged

@@ -7,8 +7,7 @@ with termination once the body leaves its healthy range.
 
 import torch
 
-from torchsim import math
-from torchsim.lanes import components_last
+from torchsim import spatial
 from torchsim.envs.base import TorchsimEnv
 from torchsim.state import State
 
@@ -172,13 +171,13 @@ class Humanoid(_Runner):
         sys = self.sys
         mass = sys.body_mass.expand(state.x_pos.shape[:2])[..., None]
         offset = state.x_pos - self._com(state)[:, None]
-        rot = components_last(math.quat_to_mat, 2)(state.x_quat)
+        rot = spatial.batch_first.quat_to_mat(state.x_quat)
         inertia = rot @ sys.body_inertia @ rot.transpose(-1, -2)
         eye = torch.eye(3, dtype=offset.dtype, device=offset.device)
         inertia = inertia + mass[..., None] * ((offset * offset).sum(-1)[..., None, None] * eye
                                                - offset[..., :, None] * offset[..., None, :])
         upper = inertia[..., [0, 1, 2, 0, 0, 1], [0, 1, 2, 1, 2, 2]]
         com_inertia = torch.cat((upper, mass * offset, mass), -1)
-        com_velocity = torch.cat((state.xd_ang, state.xd_vel - components_last(math.cross)(state.xd_ang, offset)), -1)
+        com_velocity = torch.cat((state.xd_ang, state.xd_vel - spatial.batch_first.cross(state.xd_ang, offset)), -1)
         return torch.cat((state.q[:, 2:], state.qd, com_inertia.flatten(1), com_velocity.flatten(1),
                           self._actuator_forces(state, ctrl)), -1)

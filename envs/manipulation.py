@@ -1,10 +1,8 @@
 """Arm tasks: bring the fingertip to a target (Reacher), push an object onto a goal (Pusher); Brax's definitions."""
 
-import math
-
 import torch
 
-from torchsim.envs.base import TorchsimEnv
+from torchsim.envs.base import TorchsimEnv, ring_points
 
 
 class Reacher(TorchsimEnv):
@@ -29,9 +27,7 @@ class Reacher(TorchsimEnv):
 
     def _sample_init(self, n):
         q = self.init_q.expand(n, -1) + self._noise(("uniform", 0.1), (n, self.sys.nq))
-        radius = 0.2 * torch.rand(n, dtype=q.dtype, device=q.device)
-        angle = 2.0 * math.pi * torch.rand(n, dtype=q.dtype, device=q.device)
-        q = torch.cat((q[:, :2], (radius * torch.cos(angle))[:, None], (radius * torch.sin(angle))[:, None]), -1)
+        q = torch.cat((q[:, :2], ring_points(q.new_zeros(n, 2), 0.0, 0.2)), -1)
         qd = torch.cat((self._noise(("uniform", 5e-3), (n, 2)), q.new_zeros(n, 2)), -1)
         return q, qd
 

@@ -2,8 +2,7 @@
 
 import torch
 
-from torchsim import math
-from torchsim.lanes import components_last
+from torchsim import spatial
 from torchsim.envs.base import TorchsimEnv
 
 
@@ -52,7 +51,7 @@ class InvertedDoublePendulum(TorchsimEnv):
     def _tip(self, state):
         pos, quat = self.mj_body_poses(state)
         axis = torch.tensor([0.0, 0.0, self.pole_length], dtype=pos.dtype, device=pos.device)
-        return pos[:, 0] + components_last(math.quat_rotate)(quat[:, 0], axis)
+        return pos[:, 0] + spatial.batch_first.quat_rotate(quat[:, 0], axis)
 
     def _observation(self, state, ctrl):
         angles = state.q[:, 1:]

@@ -1,23 +1,12 @@
 """Brax v1's target tasks: a box-shaped dog runs to targets that respawn around it (Fetch), a claw picks up a ball
 and carries it to a target (Grasp). The targets are per-env task state (``TorchsimEnv.task``), not bodies."""
 
-import math
-
 import torch
 
-from torchsim import math as tmath
-from torchsim.lanes import components_last
-from torchsim.envs.base import TorchsimEnv
+from torchsim import spatial
+from torchsim.envs.base import TorchsimEnv, ring_points
 
-quat_rotate, quat_rotate_inv = components_last(tmath.quat_rotate), components_last(tmath.quat_rotate_inv)
-
-
-def ring_points(center: torch.Tensor, r_min: float, r_span: float) -> torch.Tensor:
-    """Points ``(n, 2)`` at a uniform random angle and a distance ``r_min + r_span U(0, 1)`` [m] from ``center
-    (n, 2)``."""
-    radius = r_min + r_span * torch.rand_like(center[:, 0])
-    angle = 2.0 * math.pi * torch.rand_like(center[:, 0])
-    return center + radius[:, None] * torch.stack((torch.cos(angle), torch.sin(angle)), -1)
+quat_rotate, quat_rotate_inv = spatial.batch_first.quat_rotate, spatial.batch_first.quat_rotate_inv
 
 
 def direction(v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

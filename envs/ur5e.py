@@ -6,7 +6,6 @@ import xml.etree.ElementTree as ET
 import torch
 
 import torchsim
-from torchsim.lanes import components_last
 from torchsim.envs.base import TorchsimEnv
 
 #: Joint servo gains: stiffness [N m/rad] as MuJoCo Menagerie's UR5e (size-3 joints, then size-1 wrists) and
@@ -143,9 +142,9 @@ class UR5eReach(TorchsimEnv):
         carries about its anchor, along its axis (every UR joint turns about its child link's z axis, at its
         origin)."""
         pos, quat = self.mj_body_poses(state)
-        anchor, axis = pos[:, :6, None], components_last(torchsim.math.quat_rotate)(quat[:, :6], pos.new_tensor([0.0, 0.0, 1.0]))
+        anchor, axis = pos[:, :6, None], torchsim.spatial.batch_first.quat_rotate(quat[:, :6], pos.new_tensor([0.0, 0.0, 1.0]))
         weight = (self.sys.body_mass[..., None] * self.sys.gravity).unsqueeze(-3)  # (..., 1, N, 3) [N]
-        moment = components_last(torchsim.math.cross)(state.x_pos[:, None] - anchor, weight)  # (B, 6, N, 3) about each anchor
+        moment = torchsim.spatial.batch_first.cross(state.x_pos[:, None] - anchor, weight)  # (B, 6, N, 3) about each anchor
         return ((moment * axis[:, :, None]).sum(-1) * self.carried).sum(-1)
 
     def _hold_target(self, state):

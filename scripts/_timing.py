@@ -1,5 +1,5 @@
-"""Throughput timing shared by the benchmark scripts: the median rate of a repeated call, and MuJoCo C's batched
-``mujoco.rollout`` as the baseline."""
+"""Throughput timing shared by the benchmark scripts: the median rate of a repeated call, MuJoCo C's batched
+``mujoco.rollout`` as the baseline, and the tables they print."""
 
 import statistics
 import time
@@ -8,6 +8,14 @@ from collections.abc import Callable
 import mujoco
 import mujoco.rollout
 import numpy as np
+
+
+def emit_table(table: str, out: str | None, log: Callable[[str], None] = print) -> None:
+    """Show a markdown ``table`` and, given a path ``out``, write it there too."""
+    log(table)
+    if out:
+        with open(out, "w") as f:
+            f.write(table + "\n")
 
 
 def median_rate(run: Callable[[], None], units: float, repeats: int, min_seconds: float = 0.5) -> float:

@@ -24,7 +24,7 @@ from tensordict import TensorDict
 
 import torchsim
 import torchsim.envs
-from _timing import mujoco_rollout_rate, mujoco_start_states
+from _timing import emit_table, mujoco_rollout_rate, mujoco_start_states
 
 
 def parse_args():
@@ -35,9 +35,6 @@ def parse_args():
     p.add_argument("--steps", type=int, default=5, help="timed env steps per repeat")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: one per core)")
-    p.add_argument("--dynamic", action="store_true",
-                   help="compile with dynamic batch shapes: one compile per env for all batches > 1, instead of one "
-                        "per env and batch (the first compiled call of each env then carries the compile time)")
     p.add_argument("--out", default=None, help="also write the table as markdown here")
     return p.parse_args()
 
@@ -77,14 +74,14 @@ def main():
         f"{os.cpu_count()} cores; float32 CPU; {args.steps} env steps x {args.repeats} repeats (median)")
     rows = []
     for name in args.envs:
-        torch._dynamo.reset()  # each env compiles its own graphs (one per env with --dynamic)
+        torch._dynamo.reset()  # each env compiles its own graphs
         for batch in args.batches:
             env = torchsim.envs.make(name, num_envs=batch)
             env.reset()
             row = {"env": name, "batch": batch, "frame_skip": env.frame_skip, "substeps": env.sys.substeps,
                    "dt": env.dt}
             for mode in args.modes:
-                torchsim.compile_substeps(mode == "compiled", dynamic=args.dynamic)
+                env.stepper = torchsim.Stepper(env.base_sys, "auto" if mode == "compiled" else "eager")
                 if mode == "compiled":
                     start = time.perf_counter()
                     env.step(TensorDict(action=env.action_spec.rand(), batch_size=env.batch_size))
@@ -92,7 +89,6 @@ def main():
                 row[mode] = time_torchsim(env, args.steps, args.repeats)
                 log(f"{name:>25} batch {batch:>5} {mode:>8}: {row[mode]:>10,.0f} env-steps/s"
                     + (f" (compile {row['compile_s']:.0f} s)" if mode == "compiled" else ""))
-            torchsim.compile_substeps(False)
             row["mujoco"] = time_mujoco(env, batch, args.steps, args.repeats)
             log(f"{name:>25} batch {batch:>5}   MuJoCo: {row['mujoco']:>10,.0f} env-steps/s")
             rows.append(row)
@@ -103,11 +99,7 @@ def main():
         lines.append(f"| {r['env']} | {r['batch']} | {r['frame_skip']} x {r['substeps']} | "
                      + " | ".join(f"{r[m]:,.0f}" for m in args.modes) + f" | {r['mujoco']:,.0f} | "
                      + " | ".join(f"{r[m] / r['mujoco']:.3g}" for m in args.modes) + " |")
-    table = "\n".join(lines)
-    log(table)
-    if args.out:
-        with open(args.out, "w") as f:
-            f.write(table + "\n")
+    emit_table("\n".join(lines), args.out, log)
 
 
 if __name__ == "__main__":

@@ -50,22 +50,18 @@ def parse_args(argv=None):
     p.add_argument("--no-eager", action="store_true", help="skip eager mode")
     p.add_argument("--no-mujoco", action="store_true", help="skip the MuJoCo reference timings")
     p.add_argument("--no-accuracy", action="store_true", help="skip the float64 accuracy check against MuJoCo")
-    p.add_argument("--compile-scope", choices=["step", "substep"], default="substep",
-                   help="'substep' (default): torchsim.compile_substeps(dynamic=False): the method's substep function, "
-                        "which torchsim.step's loop calls sys.substeps times, and the step's read-back; "
-                        "'step': torch.compile(torchsim.step) as a whole (all substeps unrolled into one graph; on a "
-                        "2-core CPU Inductor had not finished one xpbd variant after 25 min)")
-    p.add_argument("--scalar", action="store_true",
-                   help="Inductor CPU codegen without SIMD (cpp.simdlen=1); default: SIMD, which in the engine's "
-                        "lanes layout runs across envs")
+    p.add_argument("--compile-scope", choices=["step", "stepper"], default="stepper",
+                   help="'stepper' (default): torchsim.Stepper(sys, --strategy), the engine's compiled step; "
+                        "'step': torch.compile(torchsim.step) as a whole (loop nests; slower on CPU)")
+    p.add_argument("--strategy", default="auto", help="torchsim.Stepper strategy: auto, rows, loop or calls")
+    p.add_argument("--simdlen", type=int, default=None,
+                   help="inductor's cpp.simdlen: 256 makes AVX2 code on an AVX-512 machine, 1 scalar code "
+                        "(default: the machine's widest)")
     p.add_argument("--no-cpp-wrapper", action="store_true",
-                   help="Inductor's Python wrapper around the kernels (torchsim.compile_substeps uses its C++ wrapper)")
+                   help="Inductor's Python wrapper around the kernels (torchsim.Stepper uses its C++ wrapper)")
     p.add_argument("--part-size", type=int, default=512,
-                   help="torchsim.compile_substeps(part_size=...): CPU batches run as parts of at most this many envs "
-                        "on one thread per core (0: one part)")
-    p.add_argument("--no-rows", action="store_true",
-                   help="torchsim.compile_substeps(rows=False): the spring substeps as inductor's loop nests in one "
-                        "compiled loop, not a compiled row graph (torchsim.rows)")
+                   help="torchsim.Stepper(part_size=...), strategies loop and calls: CPU batches run as parts of at "
+                        "most this many envs on one thread per core (0: one part)")
     p.add_argument("--compile-style", choices=["closure", "arg"], default="closure",
                    help="'closure': compile lambda s, c: step(sys, s, c); 'arg': compile step itself, sys as argument")
     p.add_argument("--keep-inductor-cache", action="store_true",
@@ -134,8 +130,9 @@ def machine_info(device: torch.device, dtype: torch.dtype) -> dict:
         "cpu": cpu_model(),
         "cpu_count": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
-        "compile": f"scope={ARGS.compile_scope}" + (f" style={ARGS.compile_style}" if ARGS.compile_scope == "step" else "")
-                   + (" simdlen=1" if ARGS.scalar else " SIMD"),
+        "compile": f"scope={ARGS.compile_scope}" + (f" style={ARGS.compile_style}" if ARGS.compile_scope == "step" else
+                                                     f" strategy={ARGS.strategy}")
+                   + (f" simdlen={ARGS.simdlen}" if ARGS.simdlen else " SIMD"),
         "device": str(device) + (f" ({torch.cuda.get_device_name(device)})" if device.type == "cuda" else ""),
         "dtype": str(dtype).replace("torch.", ""),
         "loadavg_start": " ".join(f"{x:.2f}" for x in os.getloadavg()),
@@ -265,12 +262,12 @@ def configure_dynamo():
     for name in ("cache_size_limit", "recompile_limit"):
         if hasattr(cfg, name):
             setattr(cfg, name, max(getattr(cfg, name), 64))
-    if ARGS.scalar:
-        torch._inductor.config.cpp.simdlen = 1
+    if ARGS.simdlen:
+        torch._inductor.config.cpp.simdlen = ARGS.simdlen
 
 
 def warm_engine(system, device, dtype):
-    """One eager step at batch 1 so that lazily built module-level tables (e.g. ``torchsim.math._CACHE``, keyed by
+    """One eager step at batch 1 so that lazily built module-level tables (e.g. ``torchsim.spatial._CACHE``, keyed by
     dtype and device) exist before tracing; otherwise the traced code mutates them and the first compiled call is
     followed by a guard failure and a second full compile."""
     with torch.no_grad():
@@ -281,11 +278,12 @@ def warm_engine(system, device, dtype):
 
 def make_compiled(system):
     """Return (step_fn(state, ctrl), restore()) for the chosen compile scope and style."""
-    if ARGS.compile_scope == "substep":
+    if ARGS.compile_scope == "stepper":
         torch._dynamo.reset()  # a fresh compile per batch size, so that its compile time is measured
-        torchsim.compile_substeps(dynamic=False, vectorize=not ARGS.scalar, cpp_wrapper=not ARGS.no_cpp_wrapper,
-                                  part_size=ARGS.part_size, rows=not ARGS.no_rows)
-        return (lambda s, c: torchsim.step(system, s, c)), (lambda: torchsim.compile_substeps(False))
+        options = ({"cpp.simdlen": ARGS.simdlen} if ARGS.simdlen else {}) | (
+            {"cpp_wrapper": False} if ARGS.no_cpp_wrapper else {})
+        stepper = torchsim.Stepper(system, ARGS.strategy, part_size=ARGS.part_size, inductor_options=options)
+        return stepper, (lambda: None)
     if ARGS.compile_style == "closure":
         fn = torch.compile(lambda s, c: torchsim.step(system, s, c), fullgraph=True, dynamic=False)
         return fn, (lambda: None)

@@ -15,10 +15,8 @@ import time
 
 import torch
 
-import torchsim
 import torchsim.envs
 from _timing import median_rate
-from torchsim import pipeline
 
 
 def main():
@@ -28,7 +26,6 @@ def main():
     p.add_argument("--batches", type=int, nargs="+", default=[128, 64, 1])
     p.add_argument("--repeats", type=int, default=5)
     args = p.parse_args()
-    torchsim.compile_substeps()
     graphs = torch._dynamo.utils.counters["stats"]
 
     def first_step(env):
@@ -36,7 +33,7 @@ def main():
         with torch.no_grad():
             env.rand_step(env.reset())
         print(f"batch {env.batch_size[0]}: first step {time.perf_counter() - start:.1f} s, "
-              f"{graphs['unique_graphs'] - before} new dynamo graphs, {len(pipeline._ROW_GRAPHS)} row graphs in all",
+              f"{graphs['unique_graphs'] - before} new dynamo graphs, {env.stepper.num_row_graphs} row graphs in all",
               flush=True)
 
     def rate(env):
@@ -45,9 +42,9 @@ def main():
         with torch.no_grad():
             return median_rate(lambda: env.step(td), env.batch_size[0], args.repeats)
 
-    train = torchsim.envs.make(args.env, num_envs=args.train_batch)
+    train = torchsim.envs.make(args.env, num_envs=args.train_batch, stepper="auto")
     first_step(train)
-    others = [torchsim.envs.make(args.env, num_envs=b, system=train.base_sys) for b in args.batches]
+    others = [torchsim.envs.make(args.env, num_envs=b, stepper=train.stepper) for b in args.batches]
     for env in others:
         first_step(env)
     for env in [train, *others]:

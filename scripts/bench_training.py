@@ -3,7 +3,7 @@
     python scripts/bench_training.py                       # the main job's settings (PPO on Ant, config defaults)
     python scripts/bench_training.py env=halfcheetah algo.num_envs=1024 --repeats 5
 
-1. engine alone: ``torchsim.step`` x frame_skip on the training batch under random controls (no env, no policy);
+1. engine alone: the env's ``torchsim.Stepper`` x frame_skip on the training batch under random controls (no env, no policy);
 2. env alone: ``env.step`` of the TorchRL env with its transforms (observation, reward, resets, normaliser);
 3. collector: ``Collector`` batches (engine + policy + transforms), frames per second;
 4. learner: ``PPO.update`` on one collected batch (GAE, then epochs x minibatches of Adam steps), samples/s;
@@ -19,10 +19,9 @@ import logging
 import torch
 from hydra import compose, initialize_config_dir
 
-import torchsim
 from _timing import median_rate
 from torchsim.algos.ppo import PPO
-from torchsim.train import CONFIG_DIR, prepare
+from torchsim.algos.train import CONFIG_DIR, prepare
 
 
 def main():
@@ -49,7 +48,7 @@ def main():
         s = state
         for _ in range(a.unroll):
             for _ in range(env.frame_skip):
-                s = torchsim.step(env.sys, s, ctrl)
+                s = env.stepper(s, ctrl)
 
     def env_steps():
         td = ppo.env.reset()
@@ -64,7 +63,7 @@ def main():
     def rate(fn):  # one call per repeat: a call is already a whole batch
         return median_rate(fn, frames, args.repeats, min_seconds=0)
 
-    rows = {"engine alone (torchsim.step)": rate(engine), "env alone (env.step + transforms)": rate(env_steps),
+    rows = {"engine alone (env.stepper)": rate(engine), "env alone (env.step + transforms)": rate(env_steps),
             "collector (env + policy)": rate(lambda: next(batches)),
             "learner (PPO.update)": rate(lambda: ppo.update(data.clone(), lambda *args: None))}
 
@@ -72,7 +71,7 @@ def main():
         ppo.update(next(batches), lambda *args: None)
 
     rows["whole loop (collector + learner)"] = rate(iteration)
-    engine_rate = rows["engine alone (torchsim.step)"]
+    engine_rate = rows["engine alone (env.stepper)"]
     print("\n| stage | env-steps/s | of engine alone |\n|---|---|---|")
     for name, rate in rows.items():
         print(f"| {name} | {rate:,.0f} | {rate / engine_rate:.2f} |")

@@ -1,6 +1,6 @@
 """Time one compiled physics substep, and with ``--stages`` each stage of the spring substep compiled alone.
 
-The diagnostic behind ``docs/benchmarks.md`` ("Speed pass 2"): where a substep's time goes, and what inductor's
+The diagnostic behind the substep profile of commit 19b9828 (its ``docs/benchmarks.md``): where a substep's time goes, and what inductor's
 code-generation options cost. Start: the model's first keyframe (or ``qpos0``) with a 5 cm drop and small random
 velocities, random controls, fixed seed; the timed substeps continue from there. Reports the median of
 ``--repeats`` single substeps after 3 warm-up calls.
@@ -18,7 +18,7 @@ does; reports the time per env and substep, interleaving the sizes over the repe
 them alike.
 
 ``--count-ops``: the element-wise arithmetic of one substep per env, in the code that ``torch.compile`` traces
-(``torchsim.math``'s small-matrix helpers unrolled into elementwise ops), by stage (the function the substep
+(``torchsim.spatial``'s small-matrix helpers unrolled into elementwise ops), by stage (the function the substep
 calls), and the compiled substep's time per element op. An op counts once per output element; a reduction
 (``sum``, ``amax``) once per input element. Views, copies, gathers and concatenations are not counted.
 """
@@ -89,7 +89,7 @@ def spring_stages(sys, bodies, ctrl, terms, h):
         ("velocity update", lambda b, f, t: integrator.velocity_update(sys, b, inv, f, t, h), (bodies, force, torque)),
         ("armature and damping", lambda b, a, f: joint_space.inertia_and_damping(sys, b, a, f, inv, h)[0],
          (bodies, after, fr)),
-        ("contacts", lambda a, r: spring.contact_impulses(sys, a, terms.loaded, h, r), (after, inv.rot)),
+        ("contacts", lambda a, r: spring.contact_impulses(sys, a, terms.loaded, r), (after, inv.rot)),
         ("positions", lambda a: integrator.integrate_positions(a, h), (after,)),
     ]
 
@@ -101,7 +101,7 @@ def main():
     import mujoco
 
     import torchsim
-    from torchsim import pipeline
+    from torchsim.methods import METHODS
     from torchsim.kinematics import with_world
     from torchsim.lanes import to_lanes
 
@@ -113,8 +113,8 @@ def main():
     state = torchsim.init(sys, q, 0.1 * torch.randn(args.batch, sys.nv))
     ctrl = to_lanes(2 * torch.rand(args.batch, sys.nu) - 1).contiguous()
     bodies = with_world(*(to_lanes(x, 1) for x in state[:4]))  # the engine's lanes layout, as step makes it
-    h = sys.timestep / sys.substeps
-    terms = pipeline.STEP_TERMS[args.method](sys, bodies, h)  # what a step's substeps share
+    h = sys.substep_timestep
+    terms = METHODS[args.method].step_terms(sys, bodies, h)  # what a step's substeps share
     options = {"cpp_wrapper": not args.no_cpp_wrapper} | ({"cpp.simdlen": 1} if args.scalar else {})
 
     def compiled(fn):
@@ -124,17 +124,17 @@ def main():
           f"{'scalar' if args.scalar else 'SIMD'} code, {'Python' if args.no_cpp_wrapper else 'C++'} wrapper, "
           f"{'dynamic' if args.dynamic else 'static'} shapes, "
           f"torch {torch.__version__}")
-    substep = compiled(pipeline.SUBSTEP[args.method])
+    substep = compiled(METHODS[args.method].substep)
     compile_s, sec = timed(substep, (sys, bodies, ctrl, terms, h), args.repeats)
     print(f"substep: {sec * 1e3:.2f} ms (compile {compile_s:.0f} s)")
     if args.part_sizes:
-        per_env = time_part_sizes(substep, pipeline.STEP_TERMS[args.method], sys, bodies, ctrl, h,
+        per_env = time_part_sizes(substep, METHODS[args.method].step_terms, sys, bodies, ctrl, h,
                                   args.part_sizes, args.repeats)
         for p, us in per_env.items():
             print(f"  parts of {p:5d}: {us:.2f} us per env and substep "
                   f"({1e6 / us / sys.substeps:,.0f} steps/s on this thread, substeps only)")
     if args.count_ops:
-        per_stage = count_ops(pipeline.SUBSTEP[args.method], (sys, bodies, ctrl, terms, h))
+        per_stage = count_ops(METHODS[args.method].substep, (sys, bodies, ctrl, terms, h))
         total = sum(per_stage.values())
         print(f"arithmetic: {total:,.0f} element ops per env and substep; the compiled substep took "
               f"{sec / (total * args.batch) * 1e9:.3f} ns per element op")
@@ -178,7 +178,7 @@ def count_ops(substep, args) -> collections.Counter:
         with Stage():
             return substep(sys, b, c, terms, h)
 
-    with mock.patch("torchsim.math._compiling", return_value=True):  # the paths torch.compile traces
+    with mock.patch("torchsim.spatial._compiling", return_value=True):  # the paths torch.compile traces
         graph = make_fx(traced)(bodies, ctrl).graph
     nodes = [n for n in graph.nodes if isinstance(n.target, torch._ops.OpOverload)]  # not tuples' getitem
     # make_fx records a tensor constant's lift_fresh as lift_fresh_copy; every other node is the op dispatched

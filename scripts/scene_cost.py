@@ -23,6 +23,8 @@ import torchsim
 import torchsim.envs
 from torchsim.kinematics import with_world
 from torchsim.lanes import to_lanes
+from torchsim.methods import METHODS
+from _timing import emit_table
 
 VIEW_OPS = {"view", "_unsafe_view", "expand", "select", "slice", "unsqueeze", "squeeze", "permute", "transpose",
             "t", "as_strided", "unbind", "split", "alias", "detach", "reshape", "flatten", "unflatten"}
@@ -61,11 +63,11 @@ def substep_cost(env) -> CostCounter:
     state = env.state
     bodies = with_world(*(to_lanes(x[:1], 1) for x in state[:4]))
     ctrl = torch.zeros(sys.nu, 1, dtype=sys.dtype)
-    h = sys.timestep / sys.substeps
-    terms = torchsim.pipeline.STEP_TERMS[sys.method](sys, bodies, h)  # once per step, not counted
+    h = sys.substep_timestep
+    terms = METHODS[sys.method].step_terms(sys, bodies, h)  # once per step, not counted
     counter = CostCounter()
     with counter:
-        torchsim.pipeline.SUBSTEP[sys.method](sys, bodies, ctrl, terms, h)
+        METHODS[sys.method].substep(sys, bodies, ctrl, terms, h)
     return counter
 
 
@@ -119,10 +121,7 @@ def main():
     table = "\n".join(lines)
     if bandwidth:
         table += f"\n\nCopy bandwidth measured here: {bandwidth / 1e9:.1f} GB/s (1 thread)."
-    print(table)
-    if args.out:
-        with open(args.out, "w") as f:
-            f.write(table + "\n")
+    emit_table(table, args.out)
 
 
 if __name__ == "__main__":

@@ -24,8 +24,8 @@ env step) as the reference, MuJoCo at timestep / 10 with the MJCF's integrator (
   of these runs (MuJoCo, in generalized coordinates, has none). ``diverged``: torchsim's divergence flag.
 
 Speed: ``steps_per_s`` = model timesteps simulated per second over ``--batch`` envs on one thread (``env_steps_per_s``
-= that / frame_skip); torchsim with ``torchsim.compile_substeps`` (one compile per model, method and dtype serves
-all substep counts), MuJoCo C with ``mujoco.rollout`` on one thread, same batch, same start, in the same run;
+= that / frame_skip); torchsim with a compiled ``torchsim.Stepper`` (a row graph bakes the substep length in, so each
+substep count builds its own), MuJoCo C with ``mujoco.rollout`` on one thread, same batch, same start, in the same run;
 median of ``--repeats``.
 """
 
@@ -169,7 +169,7 @@ def mujoco_runs(model: Model, factor: int = 1, integrator: str | None = None) ->
             for acts in model.controls(m0)]
 
 
-def torchsim_runs(sys: torchsim.System, model: Model, m: mujoco.MjModel):
+def torchsim_runs(stepper: torchsim.Stepper, model: Model, m: mujoco.MjModel):
     """All scenarios side by side in one batch of ACCURACY_BATCH envs: per scenario (q, root xpos) per env step, the
     largest anchor gap seen at any env step, and whether any env diverged."""
     controls = model.controls(m)
@@ -187,7 +187,7 @@ def torchsim_runs(sys: torchsim.System, model: Model, m: mujoco.MjModel):
     states = [state]
     for k in range(steps):
         for _ in range(model.frame_skip):
-            state = torchsim.step(sys, state, ctrl[k])
+            state = stepper(state, ctrl[k])
         states.append(state)
     # (env step, env) flattened into one batch: one kinematics call instead of one per env step
     history = torchsim.State(*(torch.cat(x) for x in zip(*states)))
@@ -216,23 +216,25 @@ def random_controls(m: mujoco.MjModel, shape: tuple) -> np.ndarray:
     return np.random.default_rng(0).uniform(lo, hi, shape + (m.nu,))
 
 
-def one_step(sys: torchsim.System, m: mujoco.MjModel) -> None:
-    """One substep of ACCURACY_BATCH envs at qpos0."""
+def one_step(stepper: torchsim.Stepper, m: mujoco.MjModel) -> None:
+    """One step of ACCURACY_BATCH envs at qpos0."""
+    sys = stepper.sys
     def zeros(n):
         return torch.zeros(ACCURACY_BATCH, n, dtype=sys.dtype, device=sys.device)
 
     q0 = torch.tensor(np.tile(m.qpos0, (ACCURACY_BATCH, 1)), dtype=sys.dtype, device=sys.device)
-    torchsim.step(sys.replace(substeps=1), torchsim.init(sys, q0, zeros(sys.nv)), zeros(sys.nu))
+    stepper(torchsim.init(sys, q0, zeros(sys.nv)), zeros(sys.nu))
 
 
-def torchsim_rate(sys: torchsim.System, model: Model, m: mujoco.MjModel, batch: int, repeats: int) -> float:
-    """Model timesteps/s of ``torchsim.step`` over ``batch`` envs from the model's start, random controls."""
+def torchsim_rate(stepper: torchsim.Stepper, model: Model, m: mujoco.MjModel, batch: int, repeats: int) -> float:
+    """Model timesteps/s of ``stepper`` over ``batch`` envs from the model's start, random controls."""
+    sys = stepper.sys
     q0, qd0 = (torch.tensor(np.tile(x, (batch, 1)), dtype=sys.dtype, device=sys.device) for x in model.start(m))
     ctrl = torch.tensor(random_controls(m, (batch,)), dtype=sys.dtype, device=sys.device)
     state = [torchsim.init(sys, q0, qd0)]
 
     def run():
-        state[0] = torchsim.step(sys, state[0], ctrl)
+        state[0] = stepper(state[0], ctrl)
         if sys.device.type == "cuda":
             torch.cuda.synchronize()
 
@@ -280,23 +282,22 @@ def torchsim_points(name: str, model: Model, ref: list, method: str, dtype: str,
         warnings.simplefilter("ignore")
         base = torchsim.load_mjcf(model.mjcf, method=method, dtype=DTYPES[dtype], device=args.device)
     default = model.default_substeps or base.substeps
-    torchsim.compile_substeps(False)
-    one_step(base, m)  # eager first: fills torchsim.math's per-dtype constant tables, which a compiled graph traced
-    # before they exist guards on, and would be compiled a second time
+    one_step(torchsim.Stepper(base, "eager"), m)  # eager first: fills torchsim.spatial's per-dtype constant
+    # tables, which a compiled graph traced before they exist guards on, and would be compiled a second time
     compile_s = 0.0
+    stepper = torchsim.Stepper(base, "eager" if args.eager else "auto")
     if not args.eager:
-        torchsim.compile_substeps(True)
         t0 = time.perf_counter()
-        one_step(base, m)
+        one_step(stepper, m)
         compile_s = time.perf_counter() - t0
         log(f"{name}: compiled the {method} {dtype} substep in {compile_s:.0f} s")
     rows = []
     for substeps in [default] if args.quick else model.substeps:
         t0 = time.perf_counter()
         sys_ = base.replace(substeps=substeps)
-        runs, gap, diverged = torchsim_runs(sys_, model, m)
+        runs, gap, diverged = torchsim_runs(stepper.for_system(sys_), model, m)
         r = row(name, model, "torchsim", method, dtype, substeps, base.timestep,
-                torchsim_rate(sys_, model, m, args.batch, args.repeats), errors(model, runs, ref), args,
+                torchsim_rate(stepper.for_system(sys_), model, m, args.batch, args.repeats), errors(model, runs, ref), args,
                 anchor_gap_m=gap, diverged=diverged, compiled=not args.eager, compile_s=compile_s,
                 default=method == "spring" and dtype == "float32" and substeps == default)
         rows.append(r)

@@ -41,11 +41,11 @@ import torch
 from tensordict import TensorDict
 
 import torchsim
-from torchsim import math as tmath
+from torchsim import spatial
 from torchsim import rigid
 from torchsim.envs import ENVS, make
 from torchsim.kinematics import anchor_gap, dof_values, joint_frames, with_world
-from torchsim.lanes import components_last, from_lanes
+from torchsim.lanes import from_lanes
 from torchsim.pipeline import contain_divergence
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
@@ -135,7 +135,7 @@ def joint_spring_omega(sys: torchsim.System) -> torch.Tensor:
 
 def mechanical_energy(sys: torchsim.System, state: torchsim.State) -> torch.Tensor:
     """Kinetic + gravitational + joint-spring energy [J] per env ``(B,)``."""
-    w_body = components_last(tmath.quat_rotate_inv)(state.x_quat, state.xd_ang)
+    w_body = spatial.batch_first.quat_rotate_inv(state.x_quat, state.xd_ang)
     kinetic = 0.5 * (sys.body_mass * (state.xd_vel ** 2).sum(-1)).sum(-1) + 0.5 * (
         w_body * (sys.body_inertia @ w_body[..., None])[..., 0]).sum((-1, -2))
     gravity = -(sys.body_mass * (state.x_pos * sys.gravity).sum(-1)).sum(-1)
@@ -205,7 +205,7 @@ def env_marks() -> list[dict]:
         child, parent = sys.body_mass[sys.jnt_child[linked]], sys.body_mass[sys.jnt_parent[linked]]
         ratio = float(torch.maximum(child / parent, parent / child).max()) if linked.any() else 1.0
         omega = float(joint_spring_omega(sys).max()) if sys.nv else 0.0
-        marks.append(dict(name=name, h=sys.timestep / sys.substeps, mass_ratio=ratio, omega=omega,
+        marks.append(dict(name=name, h=sys.substep_timestep, mass_ratio=ratio, omega=omega,
                           kappa=sys.joint_stiffness))
     return marks
 

@@ -89,7 +89,7 @@ TWO_HINGES = """
 
 
 def quat_to_mat(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices (..., 3, 3) of unit quaternions wxyz (independent of torchsim.math)."""
+    """Rotation matrices (..., 3, 3) of unit quaternions wxyz (independent of torchsim.spatial)."""
     w, x, y, z = q.unbind(-1)
     rows = [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
             2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),

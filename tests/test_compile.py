@@ -3,7 +3,8 @@
 Compiling takes minutes per graph on 2 cores, so this file traces one small model (a hinged arm that hits the
 floor, and a falling box; 2 substeps) with dynamo for both methods (one graph, no breaks) and compiles it with
 inductor for the default method only, checking 20 steps against eager mode in float32; then twice more as
-``compile_substeps`` runs it: as a row graph (the default for spring on CPU), and in parts on two threads.
+``torchsim.Stepper`` runs it: as a row graph (the default for spring on CPU), and in parts on two threads. Two
+steppers of different strategies step side by side in one process.
 """
 
 import pytest
@@ -11,7 +12,8 @@ import torch
 
 import torchsim
 from models import METHODS
-from torchsim import parts, pipeline
+from torchsim import rows as rows_module
+from torchsim import stepper as stepper_module
 
 MODEL = """
 <mujoco><compiler angle="degree"/><option timestep="0.004"/><worldbody><geom type="plane" size="5 5 1"/>
@@ -61,20 +63,13 @@ def test_compiled_step_matches_eager(method="spring"):
     assert not state.diverged.any()
 
 
-def _compiled_steps(sys, state, ctrl, steps=5, **options):
-    """``steps`` steps under ``compile_substeps(**options)`` (the first compiles), and the number of graphs
-    dynamo compiled for them."""
-    torch.compiler.reset()
-    pipeline._ROW_GRAPHS.clear()
-    torchsim.compile_substeps(**options)
+def _compiled_steps(stepper, state, ctrl, steps=5):
+    """``steps`` steps of ``stepper`` (the first compiles), and the number of graphs dynamo compiled for them."""
     graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
-    try:
-        compiled = [state]
-        with torch.no_grad():  # as collectors step envs
-            for _ in range(steps):
-                compiled.append(torchsim.step(sys, compiled[-1], ctrl))
-    finally:
-        torchsim.compile_substeps(False)
+    compiled = [state]
+    with torch.no_grad():  # as collectors step envs
+        for _ in range(steps):
+            compiled.append(stepper(compiled[-1], ctrl))
     return compiled, torch._dynamo.utils.counters["stats"]["unique_graphs"] - graphs
 
 
@@ -86,47 +81,62 @@ def _worst_vs_eager(sys, compiled, ctrl):
     return max((a - b).abs().max().item() for e, c in zip(eager, compiled) for a, b in zip(e[:6], c[:6]))
 
 
-def test_compiled_row_graph_matches_eager(method="spring"):
-    """``compile_substeps()`` as the benchmarks run it on CPU: the step's terms and end compiled by dynamo (two
-    graphs), the substep as a row graph (``torchsim.rows``) compiled by inductor alone and called once per
-    substep. Same numbers as the eager step; the row graph is built once for all five steps."""
+def test_row_graph_and_fallback_steppers_match_eager_side_by_side(tmp_path, monkeypatch, method="spring"):
+    """Two steppers of one System in one process, stepped in turn. One runs ``rows`` (the default on CPU: the
+    step's terms and end compiled by dynamo, two graphs; the substep a row graph compiled by inductor alone, built
+    once). The other is asked for the default too, but its row graph cannot express the substep (the interpreter
+    is made to lack ``torch.cat``): it falls back to ``loop`` with one warning (the step one compiled graph, its
+    substeps a loop; the batch cut into 4 parts of 2 that two threads step at once, joined). Each gives the eager
+    step's numbers."""
+    monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))  # a row graph stored by an earlier run would load
+    torch.compiler.reset()
     sys, state, ctrl = _setup(method)
-    compiled, graphs = _compiled_steps(sys, state, ctrl)
-    assert graphs == 2 and len(pipeline._ROW_GRAPHS) == 1
-    worst = _worst_vs_eager(sys, compiled, ctrl)
-    print(f"{method}: max |eager - compiled row graph| over 5 steps {worst:.2e}")
-    assert worst < 1e-4  # float32 rounding, grown over 5 steps (one step: 1e-5, test above)
-
-
-def test_compiled_parts_on_threads_match_eager(method="spring"):
-    """``compile_substeps(rows=False)``: the compiled step (its substeps one loop), the batch cut into parts that two
-    threads step at once (``torchsim.parts``; 4 parts of 2 here), joined. Same numbers as one eager whole-batch
-    step."""
-    sys, state, ctrl = _setup(method)
-    parts.PARTS.set(2, 2)
-    assert parts.part_sizes(state) == [2, 2, 2, 2]
-    # the first step compiles (parts one after another), the others run on two threads
-    compiled, graphs = _compiled_steps(sys, state, ctrl, part_size=2, workers=2, rows=False)
-    assert graphs == 1  # the step, its substeps a loop
-    worst = _worst_vs_eager(sys, compiled, ctrl)
-    print(f"{method}: max |eager - compiled in parts| over 5 steps {worst:.2e}")
-    assert worst < 1e-4
+    looped = torchsim.Stepper(sys, part_size=2, threads=2)
+    with monkeypatch.context() as patch:
+        patch.delattr(rows_module._RowInterpreter, "_op_cat_default")
+        with pytest.warns(UserWarning, match=r"cannot run as a row graph \(row graphs do not support aten.cat"):
+            looped_states, _ = _compiled_steps(looped, state, ctrl, steps=1)
+    rows = torchsim.Stepper(sys)
+    rows_states, _ = _compiled_steps(rows, state, ctrl, steps=1)
+    assert (rows.strategy, looped.strategy) == ("rows", "loop") and looped.parts.sizes(state) == [2, 2, 2, 2]
+    graphs = {"rows": 0, "loop": 0}
+    for _ in range(4):  # alternating: neither stepper's compiled code disturbs the other's, nothing recompiles
+        for name, stepper, states in (("rows", rows, rows_states), ("loop", looped, looped_states)):
+            more, new_graphs = _compiled_steps(stepper, states[-1], ctrl, steps=1)
+            states.append(more[-1])
+            graphs[name] += new_graphs
+    assert graphs == {"rows": 0, "loop": 0} and rows.num_row_graphs == 1
+    for name, states in (("rows", rows_states), ("loop", looped_states)):
+        worst = _worst_vs_eager(sys, states, ctrl)
+        print(f"{method}: max |eager - {name} stepper| over {len(states) - 1} steps {worst:.2e}")
+        assert worst < 1e-4  # float32 rounding, grown over 5 steps (one step: 1e-5, test above)
 
 
 def test_steps_recording_gradients_run_eagerly(method="spring"):
-    """After ``compile_substeps``, a step that autograd records runs eagerly (warned once): its gradients are the
-    eager step's, not the compiled loop's (``while_loop`` gave wrong ones in torch 2.13). Nothing compiles."""
+    """A compiled stepper runs a step that autograd records as the reference step (warned once): its gradients are
+    the eager step's, not the compiled loop's (``while_loop`` gave wrong ones in torch 2.13). Nothing compiles."""
     sys, state, ctrl = _setup(method)
     sys = sys.replace(body_mass=sys.body_mass.clone().requires_grad_())
     (eager_grad,) = torch.autograd.grad(torchsim.step(sys, state, ctrl).x_pos[:, :, 2].sum(), sys.body_mass)
-    torchsim.compile_substeps(part_size=0)
-    pipeline._warn_eager_for_grad.cache_clear()
+    stepper = torchsim.Stepper(sys, "loop", part_size=0)
+    stepper_module._warn_eager_for_grad.cache_clear()
     graphs = torch._dynamo.utils.counters["stats"]["unique_graphs"]
-    try:
-        with pytest.warns(UserWarning, match="requires grad"):
-            moved = torchsim.step(sys, state, ctrl).x_pos
-    finally:
-        torchsim.compile_substeps(False)
+    with pytest.warns(UserWarning, match="requires grad"):
+        moved = stepper(state, ctrl).x_pos
     (grad,) = torch.autograd.grad(moved[:, :, 2].sum(), sys.body_mass)
     assert torch._dynamo.utils.counters["stats"]["unique_graphs"] == graphs
     assert torch.equal(grad, eager_grad) and grad.abs().sum() > 0
+
+
+def test_strategy_selection():
+    """``auto`` picks row graphs for spring on CPU, the compiled loop once parameters are per env, and compiled calls
+    for xpbd; a strategy that cannot run the System is refused with the reason (nothing compiles here)."""
+    spring = torchsim.load_mjcf(MODEL, method="spring", substeps=2)
+    batched = spring.replace(body_mass=spring.body_mass.expand(3, -1))
+    xpbd = torchsim.load_mjcf(MODEL, method="xpbd", substeps=2)
+    assert [stepper_module.choose_strategy(s) for s in (spring, batched, xpbd)] == ["rows", "loop", "calls"]
+    assert torchsim.Stepper(xpbd).strategy == "calls" and torchsim.Stepper(spring, "eager").strategy == "eager"
+    with pytest.raises(ValueError, match="xpbd method supports"):
+        torchsim.Stepper(xpbd, "loop")
+    with pytest.raises(ValueError, match="unknown strategy"):
+        torchsim.Stepper(spring, "fast")

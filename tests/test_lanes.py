@@ -4,7 +4,7 @@ as broadcastable views, and the math helpers agreeing with independent formulas 
 import torch
 
 from models import quat_to_mat
-from torchsim import lanes, math
+from torchsim import lanes, spatial
 
 F64 = torch.float64
 
@@ -34,21 +34,21 @@ def test_math_matches_independent_formulas():
     q = torch.nn.functional.normalize(torch.randn(5, 7, 4, dtype=F64), dim=-1)
     v = torch.randn(5, 7, 3, dtype=F64)
     expected = (quat_to_mat(q) @ v[..., None])[..., 0]
-    rotated = math.quat_rotate(lanes.to_lanes(q, 1), lanes.to_lanes(v, 1))
+    rotated = spatial.quat_rotate(lanes.to_lanes(q, 1), lanes.to_lanes(v, 1))
     torch.testing.assert_close(lanes.from_lanes(rotated, 1), expected, rtol=0, atol=1e-12)
-    torch.testing.assert_close(lanes.components_last(math.quat_rotate)(q, v), expected, rtol=0, atol=1e-12)
-    torch.testing.assert_close(lanes.components_last(math.quat_to_mat, 2)(q), quat_to_mat(q), rtol=0, atol=1e-12)
+    torch.testing.assert_close(lanes.components_last(spatial.quat_rotate)(q, v), expected, rtol=0, atol=1e-12)
+    torch.testing.assert_close(lanes.components_last(spatial.quat_to_mat, 2)(q), quat_to_mat(q), rtol=0, atol=1e-12)
     # a constant vector broadcasts against batch-first tensors as it would in batch-first arithmetic
     axis = torch.tensor([0.0, 0.0, 1.0], dtype=F64)
-    torch.testing.assert_close(lanes.components_last(math.quat_rotate)(q, axis), quat_to_mat(q)[..., 2],
+    torch.testing.assert_close(lanes.components_last(spatial.quat_rotate)(q, axis), quat_to_mat(q)[..., 2],
                                rtol=0, atol=1e-12)
     m = torch.randn(5, 7, 3, 3, dtype=F64) + 3 * torch.eye(3, dtype=F64)
-    inverse = lanes.from_lanes(math.inv3(lanes.to_lanes(m, 2)), 2)
+    inverse = lanes.from_lanes(spatial.inv3(lanes.to_lanes(m, 2)), 2)
     torch.testing.assert_close(inverse @ m, torch.eye(3, dtype=F64).expand_as(m), rtol=0, atol=1e-10)
     # spd_solve broadcasts a right-hand side with more batch axes than the matrix: 4 columns of the identity
     # against a (4, 4, B) matrix give its inverse
     root = torch.randn(5, 4, 4, dtype=F64)
     spd = root @ root.transpose(-1, -2) + 4 * torch.eye(4, dtype=F64)
-    solved = math.spd_solve(lanes.to_lanes(spd, 2), torch.eye(4, dtype=F64)[..., None])  # (4, 4, B)
+    solved = spatial.spd_solve(lanes.to_lanes(spd, 2), torch.eye(4, dtype=F64)[..., None])  # (4, 4, B)
     torch.testing.assert_close(lanes.from_lanes(solved, 2) @ spd, torch.eye(4, dtype=F64).expand_as(spd),
                                rtol=0, atol=1e-10)

@@ -1,7 +1,7 @@
 """A batch stepped as parts on worker threads (``torchsim.parts``) gives the whole-batch results exactly.
 
-Eager steps here (the parts machinery does not depend on compilation, and compiling would cost minutes); the
-compiled path differs only in which substep function each part calls.
+Eager steps here (the parts machinery does not depend on compilation, and compiling would cost minutes); a compiled
+``torchsim.Stepper`` (strategies ``loop`` and ``calls``) differs only in which step function each part calls.
 """
 
 import pytest
@@ -9,16 +9,15 @@ import torch
 
 import torchsim
 from models import ANT, F64
-from torchsim import parts
+from torchsim import parts, pipeline
 
 PART = 40
 BATCH = 3 * PART + 1  # parts of 31, 30, 30, 30: two sizes, shared by two threads
 
 
-@pytest.fixture
-def parts_off_after():
-    yield
-    parts.PARTS.set(0, 1)
+def _step(cut: parts.Parts, sys, state, ctrl):
+    """The reference step of ``state``'s batch as ``cut`` steps it."""
+    return cut.step(pipeline.run_substeps, sys, state, ctrl, cut.sizes(state))
 
 
 def _randomised_ant():
@@ -37,18 +36,18 @@ def _randomised_ant():
     return sys, torchsim.init(sys, q, qd), ctrl
 
 
-def test_parts_equal_whole_batch(parts_off_after):
+def test_parts_equal_whole_batch():
     sys, start, ctrl = _randomised_ant()
     bad_ctrl = ctrl.clone()
     bad_env = PART + 3  # in the second part
     bad_ctrl[1, bad_env, 0] = float("nan")
     runs = {}
     for name, size, workers in (("whole", 0, 1), ("parts", PART, 2)):
-        parts.PARTS.set(size, workers)
-        assert parts.part_sizes(start) == ([BATCH] if size == 0 else [31, 30, 30, 30])
+        cut = parts.Parts(size, workers)
+        assert cut.sizes(start) == ([BATCH] if size == 0 else [31, 30, 30, 30])
         state, bad = start, start
         for k in range(3):  # the first step in parts runs them one after another (compilation), later ones on threads
-            state, bad = torchsim.step(sys, state, ctrl[k]), torchsim.step(sys, bad, bad_ctrl[k])
+            state, bad = _step(cut, sys, state, ctrl[k]), _step(cut, sys, bad, bad_ctrl[k])
         runs[name] = state, bad
     # Eager kernels block their loops by batch size, so an env's arithmetic differs from the whole batch's at the
     # rounding level (measured: 2e-15 in poses, 6e-13 in velocities after 3 steps); an env leaking into another
@@ -64,12 +63,10 @@ def test_parts_equal_whole_batch(parts_off_after):
     assert all(torch.equal(a[keep], b[keep]) for a, b in zip(state, bad))  # same parts: bit for bit
 
 
-def test_part_sizes(parts_off_after):
+def test_part_sizes():
     _, state, _ = _randomised_ant()
-    parts.PARTS.set(512, 2)
-    assert parts.part_sizes(torchsim.State(*(x[:PART] for x in state))) == [PART]  # smaller than a part: whole
-    parts.PARTS.set(30, 2)
-    assert parts.part_sizes(torchsim.State(*(x[:120] for x in state))) == [30] * 4  # a multiple: one size
+    assert parts.Parts(512, 2).sizes(torchsim.State(*(x[:PART] for x in state))) == [PART]  # smaller: whole
+    assert parts.Parts(30, 2).sizes(torchsim.State(*(x[:120] for x in state))) == [30] * 4  # a multiple: one size
 
 
 def test_batched_field_of_another_batch_size_is_rejected():
@@ -78,16 +75,16 @@ def test_batched_field_of_another_batch_size_is_rejected():
         parts.system_part(sys, 100, 0, 50)
 
 
-def test_workers_step_in_the_callers_grad_mode(parts_off_after):
+def test_workers_step_in_the_callers_grad_mode():
     """Grad mode is per thread, and the workers step in the caller's: with grad enabled, the envs stepped on the
     worker thread are differentiable in their own per-env masses (and only theirs); under ``no_grad`` the joined
     state records no graph."""
     sys, state, ctrl = _randomised_ant()
     sys = sys.replace(body_mass=sys.body_mass.clone().requires_grad_())
-    parts.PARTS.set(PART, 2)
-    torchsim.step(sys, state, ctrl[0])  # the first step runs its parts on this thread alone
+    cut = parts.Parts(PART, 2)
+    _step(cut, sys, state, ctrl[0])  # the first step runs its parts on this thread alone
     with torch.no_grad():
-        assert not torchsim.step(sys, state, ctrl[0]).x_pos.requires_grad
-    moved = torchsim.step(sys, state, ctrl[0]).x_pos
+        assert not _step(cut, sys, state, ctrl[0]).x_pos.requires_grad
+    moved = _step(cut, sys, state, ctrl[0]).x_pos
     (mass_grad,) = torch.autograd.grad(moved[-PART:, 0, 2].sum(), sys.body_mass)  # envs of the worker's parts
     assert mass_grad[-PART:].abs().sum() > 0 and mass_grad[:BATCH - PART].abs().sum() == 0

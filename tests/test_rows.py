@@ -1,7 +1,8 @@
 """Row graphs (``torchsim.rows``): the spring substep rewritten as ops on rows of envs gives the substep's numbers.
 
 Run eagerly here (building a row graph takes seconds, compiling one minutes); ``test_compile.py`` runs the compiled
-row-graph step as ``compile_substeps`` uses it.
+row-graph step as ``torchsim.Stepper`` uses it. Every shipped model's substep runs through the row-graph
+interpreter, so an op it does not cover shows here, not at step time.
 """
 
 import mujoco
@@ -11,43 +12,51 @@ import torch
 import torch.utils._pytree as pytree
 
 import torchsim
-from models import ANT, F64, HUMANOID, random_q
-from torchsim import pipeline, rows
+from models import ANT, F64, random_q
+from torchsim import rows, stepper
+from torchsim.io_urdf import urdf_to_mjcf
 from torchsim.kinematics import with_world
 from torchsim.lanes import to_lanes
+from torchsim.methods import METHODS
 
 ASSETS = ANT.parent
+SPRING = METHODS["spring"]
+#: Every model the envs ship (MJCF, and the UR5e's URDF as the env translates it).
+SHIPPED = sorted(p for p in ASSETS.iterdir() if p.suffix in (".xml", ".urdf"))
 
 
 def _substep_inputs(path, batch=3, seed=0):
     """A spring System and the flat lanes inputs of one substep: random poses (some below the floor, so contacts
     act), velocities and controls."""
-    sys = torchsim.load_mjcf(str(path), dtype=F64)
-    m = mujoco.MjModel.from_xml_path(str(path))
+    xml = urdf_to_mjcf(path) if path.suffix == ".urdf" else path.read_text()
+    sys = torchsim.load_mjcf(xml, dtype=F64)
+    m = mujoco.MjModel.from_xml_string(xml)
     rng = np.random.default_rng(seed)
     q = torch.tensor(random_q(m, batch, rng))
     state = torchsim.init(sys, q, torch.tensor(rng.normal(0, 1, (batch, sys.nv))))
     bodies = with_world(*(to_lanes(x, 1) for x in state[:4]))
     ctrl = to_lanes(torch.tensor(rng.uniform(-1, 1, (batch, sys.nu)))).contiguous()
-    h = sys.timestep / sys.substeps
-    leaves, spec = pytree.tree_flatten((bodies, ctrl, pipeline.STEP_TERMS["spring"](sys, bodies, h)))
+    h = sys.substep_timestep
+    leaves, spec = pytree.tree_flatten((bodies, ctrl, SPRING.step_terms(sys, bodies, h)))
     return sys, leaves, spec, h
 
 
-@pytest.mark.parametrize("path", [ANT, HUMANOID, ASSETS / "grasp.xml", ASSETS / "fetch.xml"],
-                         ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
 def test_row_graph_equals_substep(path):
-    """Hinges, 3-hinge and free joints, slides, capsule/sphere/box contacts: the row graph's new poses equal the
+    """Every shipped model (hinges, 3-hinge and free joints, slides, capsule/sphere/box contacts, contact-free arms):
+    the spring substep runs through the row-graph interpreter, and the row graph's new poses equal the
     substep's to float64 rounding (the rewrite only reorders sums and folds constants)."""
     sys, leaves, spec, h = _substep_inputs(path)
 
     def substep(*flat):
         bodies, ctrl, terms = pytree.tree_unflatten(list(flat), spec)
-        return tuple(pipeline.SUBSTEP["spring"](sys, bodies, ctrl, terms, h))
+        return tuple(SPRING.substep(sys, bodies, ctrl, terms, h))
 
     graph = rows.row_graph(substep, leaves)
     ops = {n.target for n in graph.graph.nodes if n.op == "call_function"}
     assert torch.ops.aten.index_select.default not in ops and torch.ops.aten.index_add.default not in ops
+    # the compiled code receives every constant the graph holds: folding must not leave unused ones behind
+    assert {name for name, _ in graph.named_buffers()} <= {n.target for n in graph.graph.nodes if n.op == "get_attr"}
     expected, got = substep(*leaves), graph(*leaves)
     worst = max((a - b).abs().max().item() for a, b in zip(expected, got))
     moved = max((a - b).abs().max().item() for a, b in zip(expected, leaves[:4]))
@@ -62,7 +71,7 @@ def test_one_row_graph_serves_every_batch():
 
     def substep(*flat):
         bodies, ctrl, terms = pytree.tree_unflatten(list(flat), spec)
-        return tuple(pipeline.SUBSTEP["spring"](sys, bodies, ctrl, terms, h))
+        return tuple(SPRING.substep(sys, bodies, ctrl, terms, h))
 
     graph = rows.row_graph(substep, leaves)
     for batch in (5, 2):
@@ -71,6 +80,18 @@ def test_one_row_graph_serves_every_batch():
         expected, got = substep(*others), graph(*others)
         assert all(x.shape[-1] == batch for x in got)
         assert max((a - b).abs().max().item() for a, b in zip(expected, got)) < 1e-11
+
+
+def test_packed_inputs_unpack_to_the_leaves():
+    """The row-graph step passes a substep's controls and terms as two tensors, per-env rows and shared rows; the
+    graph's unpacking gives back every leaf (None included) with its values and shape."""
+    _, leaves, _, _ = _substep_inputs(ANT, batch=3)
+    leaves = [None, *leaves[4:]]  # the controls and terms, as the step flattens them
+    per_env_rows, shared_rows, _, unpack = stepper._pack(leaves)
+    assert per_env_rows.shape[-1] == 3 and shared_rows.shape[-1] == 1
+    back = unpack(per_env_rows, shared_rows)
+    assert len(back) == len(leaves) and sum(x is None for x in leaves) >= 2  # the controls' and a term's
+    assert all(b is None if a is None else a.shape == b.shape and torch.equal(a, b) for a, b in zip(leaves, back))
 
 
 def test_system_key_follows_values():
@@ -90,7 +111,10 @@ def test_row_graphs_refuse_the_batch_axis():
 
 
 def test_batched_systems_keep_the_loop():
-    """Per-env parameters cannot be baked into a graph: such Systems take the compiled loop, not a row graph."""
+    """Per-env parameters cannot be baked into a graph: such Systems take the compiled loop, not a row graph, and
+    asking for a row graph names why it cannot be."""
     sys = torchsim.load_mjcf(str(ANT))
-    assert pipeline._rows_supported(sys)
-    assert not pipeline._rows_supported(sys.replace(body_mass=sys.body_mass.expand(4, -1)))
+    batched = sys.replace(body_mass=sys.body_mass.expand(4, -1))
+    assert stepper.choose_strategy(sys) == "rows" and stepper.choose_strategy(batched) == "loop"
+    with pytest.raises(ValueError, match="parameters shared by every env"):
+        torchsim.Stepper(batched, "rows")

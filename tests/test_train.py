@@ -11,7 +11,7 @@ from torchrl.envs.transforms import VecNormV2
 from torchrl.envs.utils import RandomPolicy
 
 from torchsim.algos.common import RunningNorm, TrainingDiverged, evaluate, load_policy, make_env
-from torchsim.train import CONFIG_DIR, run
+from torchsim.algos.train import CONFIG_DIR, run
 
 # Eager physics and one thread: these tests check the recipes, not the compiled step (tests/test_training_compile.py)
 QUIET = ["video.enabled=false", "logger=''", "compile=false", "threads=1"]

@@ -19,17 +19,10 @@ from tensordict import TensorDict
 import torchsim
 import torchsim.envs
 from test_train import QUIET, config
-from torchsim.train import run
+from torchsim.algos.train import run
 
 
-@pytest.fixture
-def eager_afterwards():
-    """Leave the process-wide compiled step switched off for the tests that follow."""
-    yield
-    torchsim.compile_substeps(False)
-
-
-def test_evaluation_reuses_the_training_graph(tmp_path, caplog, eager_afterwards):
+def test_evaluation_reuses_the_training_graph(tmp_path, caplog):
     """PPO with ``compile=true``: the training env compiles the step (its terms, its row-graph substep, its end) once,
     for any batch size; the evaluation env, with another batch size and the training env's System, compiles nothing
     more, though it is evaluated at the first and the last iteration."""
@@ -40,6 +33,8 @@ def test_evaluation_reuses_the_training_graph(tmp_path, caplog, eager_afterwards
         trained = run(cfg, tmp_path)
     assert len(trained.history["eval"]) == 2
     assert (trained.eval_env.batch_size, trained.train_env.batch_size) == ((3,), (8,))
+    assert trained.eval_env.base_env.stepper is trained.train_env.base_env.stepper
+    assert trained.train_env.base_env.stepper.strategy == "rows"
     started = [r.getMessage() for r in caplog.records if r.getMessage().startswith("compiling ")]
     physics = [m for m in started if "row graph" in m or "_step_terms" in m or "finish" in m]
     assert len([m for m in physics if "row graph" in m]) == 1, started
@@ -52,9 +47,9 @@ CACHE_PROBE = textwrap.dedent("""
     from torch._dynamo.utils import counters
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     sys_ = torchsim.load_mjcf(str(torchsim.envs.asset_path("inverted_pendulum.xml")))
-    torchsim.compile_substeps()
+    stepper = torchsim.Stepper(sys_)
     state = torchsim.init(sys_, sys_.q0.expand(8, -1).clone(), torch.zeros(8, sys_.nv))
-    state = torchsim.step(sys_, state, torch.zeros(8, sys_.nu))
+    state = stepper(state, torch.zeros(8, sys_.nu))
     print(json.dumps({"q": state.q.tolist(), "inductor": dict(counters["inductor"])}))
 """)
 
@@ -77,25 +72,27 @@ def test_second_process_loads_the_compiled_step_from_disk(tmp_path):
     assert list((tmp_path / "torchsim" / "rows").glob("*.pt"))
 
 
-def test_compiled_env_step_matches_eager_with_per_env_parameters(eager_afterwards):
+def test_compiled_env_step_matches_eager_with_per_env_parameters():
     """Domain randomisation (``set_physics`` with a different mass, friction and actuator gain per env) under the
     compiled step: 10 env steps equal the eager ones to float32 tolerance (1e-4: rounding of reordered float32
     arithmetic grown over 10 x 2 physics steps; one step agrees to ~1e-6)."""
     torch.manual_seed(0)
-    env = torchsim.envs.make("inverted_pendulum", num_envs=6)
-    env.set_physics(mass_scale=torch.linspace(0.5, 1.5, 6), friction_scale=torch.linspace(0.5, 2.0, 6),
-                    actuator_gain_scale=torch.linspace(0.7, 1.3, 6))
-    env.reset()
-    start = (env.state, env.task, env.step_count.clone())
-    actions = torch.rand(10, 6, env.sys.nu) * 2 - 1
+    scales = dict(mass_scale=torch.linspace(0.5, 1.5, 6), friction_scale=torch.linspace(0.5, 2.0, 6),
+                  actuator_gain_scale=torch.linspace(0.7, 1.3, 6))
+    eager = torchsim.envs.make("inverted_pendulum", num_envs=6)
+    eager.set_physics(**scales)
+    eager.reset()
+    start = (eager.state, eager.task, eager.step_count.clone())
+    actions = torch.rand(10, 6, eager.sys.nu) * 2 - 1
     trajectories = []
-    for compiled in (False, True):
-        torchsim.compile_substeps(compiled)
+    for env in (eager, torchsim.envs.make("inverted_pendulum", num_envs=6, stepper="auto")):
+        env.set_physics(**scales)
         env.state, env.task, env.step_count = start[0], start[1], start[2].clone()
         obs = []
         for action in actions:
             obs.append(env.step(TensorDict(action=action, batch_size=[6]))["next", "observation"])
         trajectories.append(torch.stack(obs))
+    assert env.stepper.strategy == "loop"  # per-env parameters: not a row graph
     eager, compiled = trajectories
     assert not torch.equal(eager[:, 0], eager[:, -1])  # the envs differ
     torch.testing.assert_close(compiled, eager, rtol=0, atol=1e-4)
@@ -104,5 +101,5 @@ def test_compiled_env_step_matches_eager_with_per_env_parameters(eager_afterward
 def test_torch_compile_of_step_warns_it_is_not_the_fast_path():
     sys_ = torchsim.load_mjcf(str(torchsim.envs.asset_path("inverted_pendulum.xml")))
     state = torchsim.init(sys_, sys_.q0.expand(2, -1).clone(), torch.zeros(2, sys_.nv))
-    with pytest.warns(UserWarning, match="compile_substeps"):
+    with pytest.warns(UserWarning, match="torchsim.Stepper"):
         torch.compile(torchsim.step, fullgraph=True)(sys_, state, torch.zeros(2, sys_.nu))

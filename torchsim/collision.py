@@ -17,15 +17,11 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import lanes, math
+from torchsim import lanes, spatial
 from torchsim.kinematics import Bodies
-from torchsim.system import System
+from torchsim.system import POINTS_PER_PAIR, System
 
 SHAPE_RANK = {"sphere": 0, "capsule": 1, "box": 2, "plane": 3}
-POINTS_PER_PAIR = {
-    "sphere_plane": 1, "capsule_plane": 2, "box_plane": 8, "sphere_sphere": 1, "sphere_capsule": 1,
-    "capsule_capsule": 1, "sphere_box": 1, "capsule_box": 3, "box_box": 16,
-}
 # unit box corners (3, 1, 8, 1): components, then broadcast over pairs, the 8 corners, broadcast over the batch
 _CORNERS = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
                         dtype=torch.float64).T[:, None, :, None]
@@ -59,15 +55,15 @@ def _segment(pos, rot, size):
 
 def _closest_on_segment(p0, p1, x):
     d = p1 - p0
-    t = torch.clamp(math.dot(x - p0, d) / math.dot(d, d).clamp_min(1e-12), 0.0, 1.0)
+    t = torch.clamp(spatial.dot(x - p0, d) / spatial.dot(d, d).clamp_min(1e-12), 0.0, 1.0)
     return p0 + t * d
 
 
 def _segments_closest(p0, p1, q0, q1):
     """Closest points between segments p0-p1 and q0-q1 (clamped parametric solution, branch-free)."""
     d1, d2, r = p1 - p0, q1 - q0, p0 - q0
-    a, e, f = math.dot(d1, d1), math.dot(d2, d2), math.dot(d2, r)
-    c, b = math.dot(d1, r), math.dot(d1, d2)
+    a, e, f = spatial.dot(d1, d1), spatial.dot(d2, d2), spatial.dot(d2, r)
+    c, b = spatial.dot(d1, r), spatial.dot(d1, d2)
     denom = (a * e - b * b).clamp_min(1e-12)
     s = torch.clamp((b * f - c * e) / denom, 0.0, 1.0)
     t = torch.clamp((b * s + f) / e.clamp_min(1e-12), 0.0, 1.0)
@@ -78,7 +74,7 @@ def _segments_closest(p0, p1, q0, q1):
 def _sphere_sphere(ca, ra, cb, rb):
     """Two spheres (also capsule segment points): (point, normal b->a, distance)."""
     d = ca - cb
-    dist = math.safe_norm(d)
+    dist = spatial.safe_norm(d)
     normal = d / dist
     midpoint = 0.5 * ((ca - normal * ra) + (cb + normal * rb))
     return midpoint, normal, dist - ra - rb
@@ -86,10 +82,10 @@ def _sphere_sphere(ca, ra, cb, rb):
 
 def _point_box(x, r, box_pos, box_rot, half):
     """Sphere of radius ``r`` at ``x`` against a box: (point, normal box->sphere, distance); exact inside and out."""
-    local = math.matvec(math.transpose(box_rot), x - box_pos)
+    local = spatial.matvec(spatial.transpose(box_rot), x - box_pos)
     clamped = torch.maximum(torch.minimum(local, half), -half)
     outside_vec = local - clamped
-    out_dist = math.safe_norm(outside_vec)
+    out_dist = spatial.safe_norm(outside_vec)
     outside = outside_vec.abs().amax(0) > 0
     # inside: leave through the nearest face
     face_gap = half - local.abs()
@@ -100,7 +96,7 @@ def _point_box(x, r, box_pos, box_rot, half):
     in_normal = axis * torch.where(local >= 0, 1.0, -1.0)
     normal_local = torch.where(outside, outside_vec / out_dist, in_normal)
     dist = torch.where(outside, out_dist, -(face_gap * axis).sum(0)) - r
-    normal = math.matvec(box_rot, normal_local)
+    normal = spatial.matvec(box_rot, normal_local)
     return x - normal * (r + 0.5 * dist), normal, dist
 
 
@@ -108,7 +104,7 @@ def _box_corners(pos, rot, size):
     """World corners ``(3, P, 8, B)`` of boxes at positions ``(3, P, B)`` and rotations ``(3, 3, P, B)`` with half
     sizes ``(3, P, 1)``."""
     corners = _CORNERS.to(pos) * size.unsqueeze(-2)
-    return pos.unsqueeze(-2) + math.matvec(rot.unsqueeze(-2), corners)
+    return pos.unsqueeze(-2) + spatial.matvec(rot.unsqueeze(-2), corners)
 
 
 def _pair_contacts(kind, pa, rot_a, sa, pb, rot_b, sb):
@@ -124,7 +120,7 @@ def _pair_contacts(kind, pa, rot_a, sa, pb, rot_b, sb):
         else:
             pts, radius = _box_corners(pa, rot_a, sa), 0.0
         normal = normal.unsqueeze(-2).expand_as(pts)
-        dist = math.dot(pts - pb.unsqueeze(-2), normal) - radius
+        dist = spatial.dot(pts - pb.unsqueeze(-2), normal) - radius
         return pts - normal * (radius + 0.5 * dist), normal, dist
     if kind == "box_box":
         pt_a, n_a, d_a = _point_box(_box_corners(pa, rot_a, sa), 0.0, pb.unsqueeze(-2), rot_b.unsqueeze(-2),
@@ -164,9 +160,9 @@ def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Co
     """Evaluate every candidate contact point of the model at the given ext body poses (lanes ``Bodies``);
     ``rot (3, 3, N + 1, B)``: the bodies' rotation matrices where the caller has them (default: built from
     ``bodies.x_quat``)."""
-    rot = math.quat_to_mat(bodies.x_quat) if rot is None else rot
+    rot = spatial.quat_to_mat(bodies.x_quat) if rot is None else rot
     geom_pos, geom_size = lanes.param(sys.geom_pos, 1, 1), lanes.param(sys.geom_size, 1, 1)
-    geom_rot = math.quat_to_mat(lanes.param(sys.geom_quat, 1, 1))
+    geom_rot = spatial.quat_to_mat(lanes.param(sys.geom_quat, 1, 1))
     pos, normal, depth, body_a, body_b, friction = [], [], [], [], [], []
     for group in sys.contact_groups:
         k = POINTS_PER_PAIR[group.kind]
@@ -175,8 +171,8 @@ def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Co
         body = sys.geom_body[geom]
         frames = geom_rot if "box" in group.kind else geom_rot[:, 2:]  # capsules and planes need only their z axes
         x, r = bodies.x_pos.index_select(-2, body), rot.index_select(-2, body)
-        world_pos = x + math.matvec(r, geom_pos.index_select(-2, geom))
-        world_rot = math.mm(r, frames.index_select(-2, geom))
+        world_pos = x + spatial.matvec(r, geom_pos.index_select(-2, geom))
+        world_rot = spatial.mm(r, frames.index_select(-2, geom))
         if on_world:  # the plane's pose is its geom frame: (3, P, 1), (3, 3|1, P, 1)
             pos_a, pos_b = world_pos, geom_pos.index_select(-2, group.geom_b)
             rot_a, rot_b = world_rot, frames.index_select(-2, group.geom_b)

@@ -1,43 +1,7 @@
-"""Evaluate (and render) a trained policy: ``python -m torchsim.evaluate checkpoint=<run>/checkpoints/last.pt
-[episodes=16] [max_steps=N] [video=true] [device=cpu] [seed=N]``.
+"""``python -m torchsim.evaluate``: runs the evaluation entry point, which lives with the recipes
+(``torchsim.algos.evaluate``); the engine imports nothing of them."""
 
-Prints the deterministic policy's mean return and episode length over ``episodes`` envs (and, for goal-reaching
-tasks, the success rate and median final goal distance); ``seed`` fixes the episodes' start states (a run's
-own evaluations use its ``eval.seed``); ``video=true`` writes
-``eval.gif`` of env 0 next to the checkpoint's run dir.
-"""
-
-import pathlib
-import sys
-
-import torch
-from omegaconf import OmegaConf
-
-from torchsim.algos.common import evaluate, load_policy, make_env, render_gif
-
-DEFAULTS = {"checkpoint": "???", "episodes": 16, "max_steps": None, "video": False, "device": "cpu", "seed": None}
-
-
-def main(argv: list[str]) -> dict:
-    args = OmegaConf.create(DEFAULTS)
-    OmegaConf.set_struct(args, True)  # unknown keys fail
-    args = OmegaConf.merge(args, OmegaConf.from_cli(argv))
-    ckpt = torch.load(args.checkpoint, map_location=args.device, weights_only=False)
-    cfg = OmegaConf.create(ckpt["cfg"])
-    env = make_env(cfg, args.episodes, args.device)
-    actor = load_policy(ckpt, env, args.device)
-    ev = evaluate(env, actor, args.max_steps or cfg.eval.max_steps, record=args.video, seed=args.seed)
-    result = {"env": cfg.env.name, "algo": cfg.algo.name, "env_steps_trained": ckpt["counters"]["env_steps"],
-              "return_mean": ev.ret.mean().item(), "return_std": ev.ret.std().item(),
-              "episode_length_mean": ev.length.float().mean().item()}
-    if ev.final_distance is not None:
-        result["success_rate"] = ev.success_rate(env.base_env.success_distance)
-        result["final_distance_median"] = ev.final_distance.median().item()
-    print(result)
-    if args.video:
-        render_gif(cfg.env.name, ev.qpos, env.base_env.dt, pathlib.Path(args.checkpoint).parent.parent / "eval.gif")
-    return result
-
+import runpy
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    runpy.run_module("torchsim.algos.evaluate", run_name="__main__", alter_sys=True)

@@ -5,7 +5,7 @@ Lanes layout (``torchsim.lanes``): ext-indexed vectors ``(3, N + 1, B)``, quater
 
 import torch
 
-from torchsim import lanes, math, rigid
+from torchsim import lanes, spatial, rigid
 from torchsim.kinematics import Bodies
 from torchsim.system import System
 
@@ -23,19 +23,19 @@ def velocity_update(sys: System, bodies: Bodies, inv: rigid.InverseInertia, forc
     gravity = lanes.param(sys.gravity, 0, 1)[:, None]  # (3, 1, 1 | B): one value for every body
     xd_vel = bodies.xd_vel + h * (gravity * moving + inv.mass * force)
     rot = inv.rot[..., :n, :]
-    rot_t = math.transpose(rot)
-    w_body = math.matvec(rot_t, bodies.xd_ang[..., :n, :])
-    torque_body = math.matvec(rot_t, torque[..., :n, :])
+    rot_t = spatial.transpose(rot)
+    w_body = spatial.matvec(rot_t, bodies.xd_ang[..., :n, :])
+    torque_body = spatial.matvec(rot_t, torque[..., :n, :])
     inertia = lanes.param(sys.body_inertia, 1, 2)
-    i_w = math.matvec(inertia, w_body)
-    residual = h * math.cross(w_body, i_w) - h * torque_body
-    jac = inertia + h * (math.skew_mm(w_body, inertia) - math.skew(i_w))
-    w_body = w_body - math.matvec(math.inv3(jac), residual)
-    xd_ang = torch.cat((math.matvec(rot, w_body), bodies.xd_ang[..., n:, :]), -2)
+    i_w = spatial.matvec(inertia, w_body)
+    residual = h * spatial.cross(w_body, i_w) - h * torque_body
+    jac = inertia + h * (spatial.skew_mm(w_body, inertia) - spatial.skew(i_w))
+    w_body = w_body - spatial.matvec(spatial.inv3(jac), residual)
+    xd_ang = torch.cat((spatial.matvec(rot, w_body), bodies.xd_ang[..., n:, :]), -2)
     return bodies._replace(xd_vel=xd_vel, xd_ang=xd_ang)
 
 
 def integrate_positions(bodies: Bodies, h: float) -> Bodies:
     """``x += h v`` and the exact exponential-map rotation of each orientation by ``h w`` (all ``(*C, N + 1, B)``)."""
     return bodies._replace(x_pos=bodies.x_pos + h * bodies.xd_vel,
-                           x_quat=math.quat_integrate(bodies.x_quat, bodies.xd_ang, h))
+                           x_quat=spatial.quat_integrate(bodies.x_quat, bodies.xd_ang, h))

@@ -22,11 +22,9 @@ import torch
 
 from torchsim import joint_space
 from torchsim.collision import SHAPE_RANK
+from torchsim.methods import METHODS
 from torchsim.system import ContactGroup, System
 
-# Default substep lengths [s]; the substep count is ceil(timestep / h).
-DEFAULT_SUBSTEP = {"spring": 5e-4, "xpbd": 5e-4}
-METHODS = tuple(DEFAULT_SUBSTEP)
 _SHAPE_NAME = {
     int(mujoco.mjtGeom.mjGEOM_PLANE): "plane",
     int(mujoco.mjtGeom.mjGEOM_SPHERE): "sphere",
@@ -74,10 +72,10 @@ def load_mjcf(
             flagged as diverged.
     """
     if method not in METHODS:
-        raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
+        raise ValueError(f"unknown method {method!r}; expected one of {tuple(METHODS)}")
     m = _compile(source)
     _check_supported(m)
-    substeps = substeps or max(1, int(np.ceil(m.opt.timestep / DEFAULT_SUBSTEP[method] - 1e-9)))
+    substeps = substeps or max(1, int(np.ceil(m.opt.timestep / METHODS[method].default_substep_timestep - 1e-9)))
     fields = _bodies(m)
     fields.update(_joints(m, fields["_ipos"], fields["_off"]))
     fields.update(_actuators(m, fields.pop("_jnt_dof")))

@@ -42,9 +42,8 @@ import pytorch_kinematics as pk
 import torch
 from pytorch_kinematics.urdf_parser_py import urdf as shapes
 
-from torchsim import math
+from torchsim import spatial
 from torchsim.io_mjcf import UnsupportedMJCFError, load_mjcf
-from torchsim.lanes import components_last
 from torchsim.kinematics import mj_body_poses
 from torchsim.pipeline import init
 from torchsim.system import System
@@ -244,7 +243,7 @@ def _check_against_pk(sys: System, text: bytes, links: list, joints: list) -> No
     for k, link in enumerate(links, start=1):  # MuJoCo body 0 is the world
         ref = fk[link].get_matrix()
         err = max((pos[:, k] - ref[:, :3, 3]).abs().max().item(),
-                  (components_last(math.quat_to_mat, 2)(quat[:, k]) - ref[:, :3, :3]).abs().max().item())
+                  (spatial.batch_first.quat_to_mat(quat[:, k]) - ref[:, :3, :3]).abs().max().item())
         if err > _PK_TOLERANCE:
             raise UnsupportedURDFError(
                 f"link {link!r}: the translated model differs from pytorch-kinematics' forward kinematics by {err:.1e} "

@@ -9,7 +9,7 @@ whose inertia includes the armature.
 
 import torch
 
-from torchsim import lanes, math, rigid
+from torchsim import lanes, spatial, rigid
 from torchsim.kinematics import Bodies, JointFrames, dof_hinge_rows, dof_values
 from torchsim.system import System
 
@@ -52,23 +52,23 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     dof, body = sys.body_hinge_dof, sys.body_hinge_body
     u_inc = u.index_select(-2, dof) * lanes.param(sys.body_hinge_sign, 1)  # (3, P, B): one per (body, hinge)
     rot = inv.rot.index_select(-2, body)  # I_b^-1 s u through the body frame: cheaper than world inertias
-    w_inc = math.matvec(rot, math.matvec(inv.body.index_select(-2, body), math.matvec(math.transpose(rot), u_inc)))
+    w_inc = spatial.matvec(rot, spatial.matvec(inv.body.index_select(-2, body), spatial.matvec(spatial.transpose(rot), u_inc)))
     first, second = sys.body_hinge_pairs.unbind(1)
-    blocks = math.dot(u_inc.index_select(-2, first), w_inc.index_select(-2, second))  # (Q, B)
+    blocks = spatial.dot(u_inc.index_select(-2, first), w_inc.index_select(-2, second))  # (Q, B)
     a_flat = u.new_zeros(n_dof * n_dof, batch).index_add(0, dof[first] * n_dof + dof[second], blocks)
     armature = torch.where(hinge, lanes.param(sys.dof_armature, 1), 0.0)
     inertia = armature + torch.where(hinge, damping_h, 0.0)
     # a dof without rotor or damping gets compliance ~1e30 and a zero right-hand side: its impulse is ~1e-30 of
     # the others', i.e. none, and the matrix needs no masking
     compliance = 1.0 / inertia.clamp_min(1e-30)
-    qd_raw = math.dot(u, bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent))
+    qd_raw = spatial.dot(u, bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent))
     rhs = torch.where(inertia > 0, compliance * armature * qd_ref - qd_raw, 0.0)
     diagonal = torch.arange(n_dof, device=u.device) * (n_dof + 1)
     mat = a_flat.index_add(0, diagonal, compliance.expand(n_dof, batch)).view(n_dof, n_dof, batch)
     a = a_flat.view(n_dof, n_dof, batch)
-    mu = math.spd_solve(mat, rhs)
+    mu = spatial.spd_solve(mat, rhs)
     xd_ang = bodies.xd_ang.index_add(-2, body, w_inc * mu.index_select(-2, dof))  # I_b^-1 sum_k s_k u_k mu_k
-    return bodies._replace(xd_ang=xd_ang), qd_raw + math.matvec(a, mu)
+    return bodies._replace(xd_ang=xd_ang), qd_raw + spatial.matvec(a, mu)
 
 
 def slide_inertia_and_damping(sys: System, before: Bodies, after: Bodies, axes: torch.Tensor, qd: torch.Tensor,
@@ -123,11 +123,11 @@ def armature_loaded_inertia(sys: System, inv: rigid.InverseInertia, axes: torch.
     hinge_armature = torch.where(lanes.param(sys.dof_is_hinge, 1), lanes.param(sys.dof_armature, 1), 0.0)
     _, _, two, three, _ = sys.jnt_kinds
     if not (two or three):
-        w_axis = math.matvec(inv.inertia.index_select(-2, child), axes)
-        update = hinge_armature / (1.0 + hinge_armature * math.dot(axes, w_axis)) * math.outer(w_axis, w_axis)
+        w_axis = spatial.matvec(inv.inertia.index_select(-2, child), axes)
+        update = hinge_armature / (1.0 + hinge_armature * spatial.dot(axes, w_axis)) * spatial.outer(w_axis, w_axis)
         return inv._replace(inertia=inv.inertia.index_add(-2, child, -update), body=None)
     rot = inv.rot[..., :-1, :]
-    inertia = math.mm(rot, lanes.param(sys.body_inertia, 1, 2), math.transpose(rot))
-    inertia = inertia.index_add(-2, child, hinge_armature * math.outer(axes, axes))
-    inv_world = torch.cat((math.inv3(inertia), torch.zeros_like(inv.inertia[..., :1, :])), -2)
+    inertia = spatial.mm(rot, lanes.param(sys.body_inertia, 1, 2), spatial.transpose(rot))
+    inertia = inertia.index_add(-2, child, hinge_armature * spatial.outer(axes, axes))
+    inv_world = torch.cat((spatial.inv3(inertia), torch.zeros_like(inv.inertia[..., :1, :])), -2)
     return inv._replace(inertia=inv_world, body=None)

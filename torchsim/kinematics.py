@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import lanes, math
+from torchsim import lanes, spatial
 from torchsim.system import System
 
 
@@ -74,7 +74,7 @@ def with_world(x_pos, x_quat, xd_vel, xd_ang) -> Bodies:
 
 def _rotate_about(axis, v, angle):
     """Rotate ``v (3, ...)`` (perpendicular to unit ``axis``) by ``angle (...)`` about ``axis``."""
-    return v * torch.cos(angle) + math.cross(axis, v) * torch.sin(angle)
+    return v * torch.cos(angle) + spatial.cross(axis, v) * torch.sin(angle)
 
 
 def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None, coordinates: bool = True,
@@ -101,97 +101,97 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     xp, qp, vp, wp = (t.index_select(-2, sel(sys.jnt_parent)) for t in bodies)
     xc, qc, vc, wc = (t.index_select(-2, sel(sys.jnt_child)) for t in bodies)
     if rot is None:
-        rot_p, rot_c = math.quat_to_mat(qp), math.quat_to_mat(qc)
+        rot_p, rot_c = spatial.quat_to_mat(qp), spatial.quat_to_mat(qc)
     else:
         rot_p, rot_c = rot.index_select(-2, sel(sys.jnt_parent)), rot.index_select(-2, sel(sys.jnt_child))
     quat0_p = const(sys.jnt_quat0, 1, 1)  # zero frame of the child, in the parent's frame
-    quat0 = math.quat_mul(qp, quat0_p)  # ... and in the world
-    r_parent = math.matvec(rot_p, const(sys.jnt_anchor_parent, 1, 1))
-    r_child = math.matvec(rot_c, const(sys.jnt_anchor_child, 1, 1))
+    quat0 = spatial.quat_mul(qp, quat0_p)  # ... and in the world
+    r_parent = spatial.matvec(rot_p, const(sys.jnt_anchor_parent, 1, 1))
+    r_child = spatial.matvec(rot_c, const(sys.jnt_anchor_child, 1, 1))
     delta = (xc + r_child) - (xp + r_parent)
     mode = const(sys.jnt_mode, 2, 0)  # (J, 5, 1): weld, 1, 2, 3 hinges, ball
     axes = const(sys.jnt_axes, 2, 1)  # (3, J, 3, 1): a1..a3 along axis -2, zero frame (= child frame)
     a1, a2, a3 = axes.unbind(-2)
-    axes_p = math.quat_rotate(quat0_p.unsqueeze(-2), axes)  # (3, J, 3, 1): a1..a3 in the parent's frame
+    axes_p = spatial.quat_rotate(quat0_p.unsqueeze(-2), axes)  # (3, J, 3, 1): a1..a3 in the parent's frame
     dof_slots_only = not (all_slots or two or three)  # then every hinge dof is a single hinge's slot a1
     if dof_slots_only:
-        a1_w, a2_w = (math.matvec(rot_p, axes_p[:, :, k]) for k in (0, 1))
+        a1_w, a2_w = (spatial.matvec(rot_p, axes_p[:, :, k]) for k in (0, 1))
     else:
-        axes0 = math.matvec(rot_p.unsqueeze(-2), axes_p)  # (3, J, 3, B): a1..a3 in the zero frame, world
+        axes0 = spatial.matvec(rot_p.unsqueeze(-2), axes_p)  # (3, J, 3, B): a1..a3 in the zero frame, world
         a1_w, a2_w = axes0[:, :, 0], axes0[:, :, 1]
-    eye = math.eye3(xp, 2)
+    eye = spatial.eye3(xp, 2)
     zero3 = torch.zeros_like(delta)
 
     # constraint errors: the anchor offset along constrained directions, and the rotation out of the hinge axes
     if sys.jnt_has_slides:
-        rot0 = math.quat_to_mat(quat0)
-        lin_proj = math.mm(rot0, const(sys.jnt_lin_proj, 1, 2), math.transpose(rot0))
-        lin_err = math.matvec(lin_proj, delta)
+        rot0 = spatial.quat_to_mat(quat0)
+        lin_proj = spatial.mm(rot0, const(sys.jnt_lin_proj, 1, 2), spatial.transpose(rot0))
+        lin_err = spatial.matvec(lin_proj, delta)
     else:
         lin_proj, lin_err = eye.expand((3,) + delta.shape), delta
-    a2_c = math.matvec(rot_c, a2) if two else None  # a2 turning with the child, world
+    a2_c = spatial.matvec(rot_c, a2) if two else None  # a2 turning with the child, world
     ang_err, ang_proj = zero3, torch.zeros_like(lin_proj)
     if weld:
-        ang_err = ang_err + mode[:, 0] * math.quat_to_rot_vec(math.quat_mul(qc, math.quat_conj(quat0)))
+        ang_err = ang_err + mode[:, 0] * spatial.quat_to_rot_vec(spatial.quat_mul(qc, spatial.quat_conj(quat0)))
         ang_proj = ang_proj + mode[:, 0] * eye
     if one:
-        ang_err = ang_err + mode[:, 1] * math.cross(a1_w, math.matvec(rot_c, a1))
-        ang_proj = ang_proj + mode[:, 1] * (eye - math.outer(a1_w, a1_w))
-    n12 = math.normalize(math.cross(a1_w, a2_c)) if two else zero3
+        ang_err = ang_err + mode[:, 1] * spatial.cross(a1_w, spatial.matvec(rot_c, a1))
+        ang_proj = ang_proj + mode[:, 1] * (eye - spatial.outer(a1_w, a1_w))
+    n12 = spatial.normalize(spatial.cross(a1_w, a2_c)) if two else zero3
     if two:
-        tilt = torch.asin(torch.clamp(math.dot(a1_w, a2_c), -1.0, 1.0))
+        tilt = torch.asin(torch.clamp(spatial.dot(a1_w, a2_c), -1.0, 1.0))
         ang_err = ang_err - mode[:, 2] * tilt * n12
-        ang_proj = ang_proj + mode[:, 2] * math.outer(n12, n12)
+        ang_proj = ang_proj + mode[:, 2] * spatial.outer(n12, n12)
     if not coordinates:
         return JointFrames(None, None, None, r_parent, r_child, lin_err, lin_proj, ang_err, ang_proj,
                            None, None, None)
 
     # hinge coordinates: decompose the relative rotation about the joint's axes (a1 parent-fixed, last child-fixed)
-    quat_rel = math.quat_mul(math.quat_conj(quat0), qc)
+    quat_rel = spatial.quat_mul(spatial.quat_conj(quat0), qc)
     ang_rel_w = wc - wp
     # the turn about a1 taking the zero frame's a2 (a perpendicular of a1) to the child's, measured in the world
-    a2_c = math.matvec(rot_c, a2) if a2_c is None else a2_c
-    q1 = (mode[:, 1] + mode[:, 2]) * math.angle_about(a1_w, a2_w, a2_c)
+    a2_c = spatial.matvec(rot_c, a2) if a2_c is None else a2_c
+    q1 = (mode[:, 1] + mode[:, 2]) * spatial.angle_about(a1_w, a2_w, a2_c)
     q2 = q3 = torch.zeros_like(q1)
     if two or three:  # slots: the zero frame's a1..a3, except where 2 or 3 hinges turn the later axes
-        rt_a1 = math.quat_rotate_inv(quat_rel, a1)
-        q2 = mode[:, 2] * -math.angle_about(a2, a1, rt_a1) if two else q2
+        rt_a1 = spatial.quat_rotate_inv(quat_rel, a1)
+        q2 = mode[:, 2] * -spatial.angle_about(a2, a1, rt_a1) if two else q2
         col2 = (1 - mode[:, 2] - mode[:, 3]) * axes0[:, :, 1] + mode[:, 2] * a2_c
         col3 = (1 - mode[:, 2] - mode[:, 3]) * axes0[:, :, 2] + mode[:, 2] * n12
     if three:
         handed = const(sys.jnt_a2_sign, 1, 0)
-        r_a3 = math.quat_rotate(quat_rel, a3)
-        mid = torch.asin(torch.clamp(handed * math.dot(a1, r_a3), -1.0, 1.0))
+        r_a3 = spatial.quat_rotate(quat_rel, a3)
+        mid = torch.asin(torch.clamp(handed * spatial.dot(a1, r_a3), -1.0, 1.0))
         m3 = mode[:, 3]
-        q1 = q1 + m3 * math.angle_about(a1, _rotate_about(a2, a3, mid), r_a3)
+        q1 = q1 + m3 * spatial.angle_about(a1, _rotate_about(a2, a3, mid), r_a3)
         q2 = q2 + m3 * mid
-        q3 = m3 * -math.angle_about(a3, _rotate_about(a2, a1, -mid), rt_a1)
-        a3_c = math.matvec(rot_c, a3)
-        col2 = col2 + m3 * handed * math.normalize(math.cross(a3_c, a1_w))
+        q3 = m3 * -spatial.angle_about(a3, _rotate_about(a2, a1, -mid), rt_a1)
+        a3_c = spatial.matvec(rot_c, a3)
+        col2 = col2 + m3 * handed * spatial.normalize(spatial.cross(a3_c, a1_w))
         col3 = col3 + m3 * a3_c
     if dof_slots_only:  # slot a1 alone, the others zero: a unit axis is its own dual
         hinge_axes = torch.stack((a1_w, zero3, zero3), -2)
         hinge_dual = hinge_axes.movedim(-2, 0)
-        qd_hinge = torch.stack((math.dot(a1_w, ang_rel_w), q2, q3))
+        qd_hinge = torch.stack((spatial.dot(a1_w, ang_rel_w), q2, q3))
     else:
         if two or three:
             hinge_axes = torch.stack((a1_w, col2, col3), -2)
-            hinge_dual = math.inv3(hinge_axes.movedim(-2, 1))  # the inverse of the matrix with the axes as columns
+            hinge_dual = spatial.inv3(hinge_axes.movedim(-2, 1))  # the inverse of the matrix with the axes as columns
         else:  # the zero frame's axes are orthonormal (``System.jnt_axes``): that matrix's inverse is its transpose
             hinge_axes = axes0
             hinge_dual = hinge_axes.movedim(-2, 0)
-        qd_hinge = math.matvec(hinge_dual, ang_rel_w)
+        qd_hinge = spatial.matvec(hinge_dual, ang_rel_w)
 
     # slides: the anchor offset in the zero frame, mapped onto the slide axes
     if sys.jnt_has_slides:
         slide_pinv = const(sys.jnt_slide_pinv, 1, 2)
-        rot0_t = math.transpose(rot0)
-        d_zero = math.matvec(rot0_t, delta)
-        dd_zero = math.matvec(
-            rot0_t, (vc + math.cross(wc, r_child)) - (vp + math.cross(wp, r_parent)) - math.cross(wp, delta))
-        q_slide = math.matvec(slide_pinv, d_zero)
-        qd_slide = math.matvec(slide_pinv, dd_zero)
-        slide_axes = math.matvec(rot0.unsqueeze(-2), const(sys.jnt_slide_axes, 2, 1))
+        rot0_t = spatial.transpose(rot0)
+        d_zero = spatial.matvec(rot0_t, delta)
+        dd_zero = spatial.matvec(
+            rot0_t, (vc + spatial.cross(wc, r_child)) - (vp + spatial.cross(wp, r_parent)) - spatial.cross(wp, delta))
+        q_slide = spatial.matvec(slide_pinv, d_zero)
+        qd_slide = spatial.matvec(slide_pinv, dd_zero)
+        slide_axes = spatial.matvec(rot0.unsqueeze(-2), const(sys.jnt_slide_axes, 2, 1))
     else:
         q_slide = qd_slide = zero3
         slide_axes = torch.zeros_like(hinge_axes)
@@ -201,7 +201,7 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
         qd=torch.cat((qd_slide, qd_hinge)).movedim(0, -2),
         axes=torch.cat((slide_axes, hinge_axes), -2),
         r_parent=r_parent, r_child=r_child, lin_err=lin_err, lin_proj=lin_proj, ang_err=ang_err, ang_proj=ang_proj,
-        quat_rel=quat_rel, ang_rel=math.quat_rotate_inv(qc, ang_rel_w), hinge_dual=hinge_dual,
+        quat_rel=quat_rel, ang_rel=spatial.quat_rotate_inv(qc, ang_rel_w), hinge_dual=hinge_dual,
     )
 
 
@@ -224,7 +224,7 @@ def dof_hinge_rows(sys: System, frames: JointFrames) -> torch.Tensor:
     joint = sys.dof_flat // 6
     slot = (sys.dof_flat % 6 - 3).clamp_min(0)
     # moving the row axis next to the joint axis gathers both in one index
-    return math.transpose(frames.hinge_dual)[:, slot, joint]
+    return spatial.transpose(frames.hinge_dual)[:, slot, joint]
 
 
 def _addresses(start: torch.Tensor, width: int) -> torch.Tensor:
@@ -243,15 +243,15 @@ def read_q(sys: System, bodies: Bodies, frames: JointFrames):
     from lanes ext body states and their :class:`JointFrames`."""
     b = bodies.x_pos.shape[-1]
     x_pos, x_quat, xd_vel, ang = (t.index_select(-2, sys.free_body) for t in bodies)
-    com = math.quat_rotate(x_quat, lanes.param(sys.body_ipos[sys.free_body], 1, 1))
-    lin = xd_vel - math.cross(ang, com)
+    com = spatial.quat_rotate(x_quat, lanes.param(sys.body_ipos[sys.free_body], 1, 1))
+    lin = xd_vel - spatial.cross(ang, com)
     ball = sys.ball_joint
     # each part: its addresses and its lanes rows (component-major), written into contiguous batch-first outputs
     q_parts = ((sys.dof_qpos, dof_values(sys, frames.q) + lanes.param(sys.dof_ref, 1)),
                (_addresses(sys.free_qpos, 7), torch.cat((x_pos - com, x_quat)).flatten(0, 1)),
                (_addresses(sys.ball_qpos, 4), frames.quat_rel.index_select(-2, ball).flatten(0, 1)))
     qd_parts = ((sys.dof_qvel, dof_values(sys, frames.qd)),
-                (_addresses(sys.free_qvel, 6), torch.cat((lin, math.quat_rotate_inv(x_quat, ang))).flatten(0, 1)),
+                (_addresses(sys.free_qvel, 6), torch.cat((lin, spatial.quat_rotate_inv(x_quat, ang))).flatten(0, 1)),
                 (_addresses(sys.ball_qvel, 3), frames.ang_rel.index_select(-2, ball).flatten(0, 1)))
     q = x_pos.new_zeros(b, sys.nq)
     qd = x_pos.new_zeros(b, sys.nv)
@@ -276,13 +276,13 @@ def forward(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
     fb = sys.free_body
     root = _block(q, sys.free_qpos, 7)
     root_vel = _block(qd, sys.free_qvel, 6)
-    quat = math.normalize(root[3:])
-    com = math.quat_rotate(quat, lanes.param(sys.body_ipos[fb], 1, 1))
-    ang = math.quat_rotate(quat, root_vel[3:])
+    quat = spatial.normalize(root[3:])
+    com = spatial.quat_rotate(quat, lanes.param(sys.body_ipos[fb], 1, 1))
+    ang = spatial.quat_rotate(quat, root_vel[3:])
     x_pos[:, fb] = root[:3] + com
     x_quat[:, fb] = quat
     xd_ang[:, fb] = ang
-    xd_vel[:, fb] = root_vel[:3] + math.cross(ang, com)
+    xd_vel[:, fb] = root_vel[:3] + spatial.cross(ang, com)
 
     # joint slot values (6, J, B): coordinate relative to the zero frame (q - ref) and rate; ball joints read a
     # quaternion
@@ -293,14 +293,14 @@ def forward(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
     slot_qd = slot_qd.view(n_jnt, 6, b).movedim(1, 0)
     ball_q = q.new_zeros(4, n_jnt, b)
     ball_q[0] = 1.0
-    ball_q[:, sys.ball_joint] = math.normalize(_block(q, sys.ball_qpos, 4))
+    ball_q[:, sys.ball_joint] = spatial.normalize(_block(q, sys.ball_qpos, 4))
     ball_qd = q.new_zeros(3, n_jnt, b)
     ball_qd[:, sys.ball_joint] = _block(qd, sys.ball_qvel, 3)
 
     for level in sys.jnt_levels:
         p, c = sys.jnt_parent[level], sys.jnt_child[level]
         xp, qp, vp, wp = x_pos[:, p], x_quat[:, p], xd_vel[:, p], xd_ang[:, p]
-        quat0 = math.quat_mul(qp, lanes.param(sys.jnt_quat0[level], 1, 1))
+        quat0 = spatial.quat_mul(qp, lanes.param(sys.jnt_quat0[level], 1, 1))
         sq, sqd = slot_q[:, level], slot_qd[:, level]
         axes = lanes.param(sys.jnt_axes[level], 2, 1)
         # hinges compose about a1, a2, a3 in order (unused slots have zero angle)
@@ -308,19 +308,19 @@ def forward(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
         ang_rel = torch.zeros_like(xp)
         for k in range(3):
             axis = axes[:, :, k]
-            ang_rel = ang_rel + math.quat_rotate(math.quat_mul(quat0, rel), axis) * sqd[3 + k]
-            rel = math.quat_mul(rel, math.axis_angle_to_quat(axis, sq[3 + k]))
-        qc = math.quat_mul(quat0, rel)
-        wc = wp + ang_rel + math.quat_rotate(qc, ball_qd[:, level])
-        slide_cols = math.transpose(lanes.param(sys.jnt_slide_axes[level], 1, 2))  # the slide axes as columns
-        slide = math.matvec(slide_cols, sq[:3])
-        slide_rate = math.matvec(slide_cols, sqd[:3])
-        anchor_zero = xp + math.quat_rotate(qp, lanes.param(sys.jnt_anchor_parent[level], 1, 1))
-        anchor = anchor_zero + math.quat_rotate(quat0, slide)
-        v_anchor = vp + math.cross(wp, anchor - xp) + math.quat_rotate(quat0, slide_rate)
-        xc = anchor - math.quat_rotate(qc, lanes.param(sys.jnt_anchor_child[level], 1, 1))
+            ang_rel = ang_rel + spatial.quat_rotate(spatial.quat_mul(quat0, rel), axis) * sqd[3 + k]
+            rel = spatial.quat_mul(rel, spatial.axis_angle_to_quat(axis, sq[3 + k]))
+        qc = spatial.quat_mul(quat0, rel)
+        wc = wp + ang_rel + spatial.quat_rotate(qc, ball_qd[:, level])
+        slide_cols = spatial.transpose(lanes.param(sys.jnt_slide_axes[level], 1, 2))  # the slide axes as columns
+        slide = spatial.matvec(slide_cols, sq[:3])
+        slide_rate = spatial.matvec(slide_cols, sqd[:3])
+        anchor_zero = xp + spatial.quat_rotate(qp, lanes.param(sys.jnt_anchor_parent[level], 1, 1))
+        anchor = anchor_zero + spatial.quat_rotate(quat0, slide)
+        v_anchor = vp + spatial.cross(wp, anchor - xp) + spatial.quat_rotate(quat0, slide_rate)
+        xc = anchor - spatial.quat_rotate(qc, lanes.param(sys.jnt_anchor_child[level], 1, 1))
         x_pos[:, c], x_quat[:, c], xd_ang[:, c] = xc, qc, wc
-        xd_vel[:, c] = v_anchor + math.cross(wc, xc - anchor)
+        xd_vel[:, c] = v_anchor + spatial.cross(wc, xc - anchor)
     return Bodies(x_pos[:, :n], x_quat[:, :n], xd_vel[:, :n], xd_ang[:, :n])
 
 
@@ -331,5 +331,5 @@ def mj_body_poses(sys: System, x_pos: torch.Tensor, x_quat: torch.Tensor):
     pos, quat = lanes.to_lanes(x_pos, 1), lanes.to_lanes(x_quat, 1)
     bodies = with_world(pos, quat, pos, pos)
     pos, quat = bodies.x_pos.index_select(-2, sys.mjbody_body), bodies.x_quat.index_select(-2, sys.mjbody_body)
-    return (lanes.from_lanes(pos + math.quat_rotate(quat, lanes.param(sys.mjbody_pos, 1, 1)), 1),
-            lanes.from_lanes(math.quat_mul(quat, lanes.param(sys.mjbody_quat, 1, 1)), 1))
+    return (lanes.from_lanes(pos + spatial.quat_rotate(quat, lanes.param(sys.mjbody_pos, 1, 1)), 1),
+            lanes.from_lanes(spatial.quat_mul(quat, lanes.param(sys.mjbody_quat, 1, 1)), 1))

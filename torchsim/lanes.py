@@ -4,7 +4,7 @@ Public tensors (``State``, ``q``, ``ctrl``, ``System`` parameters) are batch-fir
 ``(B, *E, *C)``, e.g. body positions ``(B, N, 3)``. Inside ``step`` every tensor is ``(*C, *E, B)``, e.g.
 ``(3, N, B)``: each elementwise op then runs over contiguous rows of ``B`` envs, which compiled code spreads over
 SIMD lanes, where the batch-first layout left only the 3 or 4 components of a vector to vectorise over
-(``docs/benchmarks.md``, speed pass 4). A scalar field ``(*E, B)`` broadcasts against vectors ``(3, *E, B)`` and
+(measured in commit 9b46b41, its ``docs/benchmarks.md``). A scalar field ``(*E, B)`` broadcasts against vectors ``(3, *E, B)`` and
 matrices ``(3, 3, *E, B)`` as it is, and gathers over bodies or joints (axis ``-2`` for one entity axis) move whole
 rows. ``step`` converts the state once on entry and once on exit; model constants are views with a batch axis of 1.
 """
@@ -37,7 +37,7 @@ def param(x: torch.Tensor, entities: int, comps: int = 0) -> torch.Tensor:
 
 
 def components_last(fn, out_comps: int = 1):
-    """``fn``, a ``torchsim.math`` function, for batch-first tensors with one component axis last (as ``State``'s
+    """``fn``, a ``torchsim.spatial`` function, for batch-first tensors with one component axis last (as ``State``'s
     fields and the envs hold them), broadcasting as batch-first tensors do: every tensor argument's last axis moves
     to the front, and the result's ``out_comps`` leading axes (2 for a matrix) move to the end."""
 

@@ -2,7 +2,7 @@
 
 Envs never interact, so a batch can be cut anywhere and each part stepped as an ordinary ``step`` of a smaller
 batch; joined, the parts give the whole-batch result exactly. Two things make that faster on CPU
-(``docs/benchmarks.md``, speed pass 5):
+(measured in commit 6bce6de, its ``docs/benchmarks.md``):
 
 - **Part size.** Inductor's substep kernel streams ~120 intermediate buffers (~21 KB per env) through ~140 loop
   nests. Parts of a few hundred ant envs ran 1.1-1.5x faster per env than one part of 4096 on one thread (the
@@ -11,8 +11,10 @@ batch; joined, the parts give the whole-batch result exactly. Two things make th
   parts on separate threads scale: the compiled kernels release the GIL. Each thread steps its share of the parts
   one after another.
 
-``torchsim.compile_substeps`` switches this on (``part_size``, ``workers``); eager steps stay whole and on one
-thread (their Python dispatch would hold the GIL most of the time, and eager ops gain from large batches).
+A ``torchsim.Stepper`` whose strategy compiles the step as loop nests (``loop``, ``calls``) steps CPU batches this
+way (its ``part_size`` and ``threads``); eager steps stay whole and on one thread (their Python dispatch would
+hold the GIL most of the time, and eager ops gain from large batches), and so do row graphs (one loop over the
+whole batch, spread over every intra-op thread).
 """
 
 import dataclasses
@@ -27,41 +29,52 @@ from torchsim.state import State
 from torchsim.system import BATCHABLE_RANK, System
 
 
-class _Parts:
-    """The process-wide settings: parts of at most ``size`` envs (0: off) on ``workers`` threads (``workers - 1``
-    in the pool: the calling thread steps its share too)."""
+class Parts:
+    """How a stepper cuts CPU batches: parts of at most ``size`` envs (0: whole batches), stepped on ``workers``
+    threads (``workers - 1`` in a pool: the calling thread steps its share too). Each compiled stepper owns one."""
 
-    def __init__(self):
-        self.size = 0
-        self.workers = 1
-        self.pool = None
+    def __init__(self, size: int, workers: int):
+        if size < 0 or workers < 1:
+            raise ValueError(f"part size must be >= 0 and workers >= 1, got {size} and {workers}")
+        self.size, self.workers = size, workers
+        self.pool = ThreadPoolExecutor(workers - 1, thread_name_prefix="torchsim-part") if workers > 1 else None
         self.lock = threading.Lock()
         self.warm = set()  # (method, dtype, part sizes) stepped once, i.e. whose compilation is done
 
-    def set(self, size: int, workers: int) -> None:
-        if size < 0 or workers < 1:
-            raise ValueError(f"part size must be >= 0 and workers >= 1, got {size} and {workers}")
-        if self.pool is not None and workers != self.workers:
-            self.pool.shutdown()
-            self.pool = None
-        self.size, self.workers = size, workers
-        self.warm.clear()
-        if workers > 1 and self.pool is None:
-            self.pool = ThreadPoolExecutor(workers - 1, thread_name_prefix="torchsim-part")
+    def sizes(self, state: State) -> list[int]:
+        """Sizes of the parts ``state``'s batch is stepped in: ``ceil(B / size)`` parts of near-equal size (one
+        size when ``B`` is a multiple of the part size, so that one static compilation serves them all); one part
+        when parts are off or off the CPU."""
+        batch = state.x_pos.shape[0]
+        if self.size == 0 or state.x_pos.device.type != "cpu":
+            return [batch]
+        count = max(1, math.ceil(batch / self.size))
+        return [batch // count + (k < batch % count) for k in range(count)]
 
+    def step(self, step, sys: System, state: State, ctrl: torch.Tensor, sizes: list[int]) -> State:
+        """``step(sys, state, ctrl)`` on consecutive slices of the batch of ``sizes``, joined into one State; each
+        worker thread steps a contiguous share of the parts."""
+        batch = state.x_pos.shape[0]
+        bounds = [0, *itertools.accumulate(sizes)]
+        jobs = [(system_part(sys, batch, a, b), State(*(x[a:b] for x in state)), ctrl[a:b])
+                for a, b in zip(bounds[:-1], bounds[1:])]
+        key = (sys.method, sys.dtype, tuple(sorted(set(sizes))))
+        with self.lock:
+            first_run = key not in self.warm
+            self.warm.add(key)
+        threads = 1 if first_run else min(self.workers, len(jobs))  # first run: compile on this thread alone
+        cuts = [len(jobs) * k // threads for k in range(threads + 1)]
+        shares = [jobs[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
 
-PARTS = _Parts()
+        grad, inference = torch.is_grad_enabled(), torch.is_inference_mode_enabled()
 
+        def run(share):  # grad and inference mode are per thread: the workers step in the caller's
+            with torch.inference_mode(inference), torch.set_grad_enabled(grad):
+                return [step(*job) for job in share]
 
-def part_sizes(state: State) -> list[int]:
-    """Sizes of the parts ``state``'s batch is stepped in: ``ceil(B / size)`` parts of near-equal size (one size
-    when ``B`` is a multiple of the part size, so that one static compilation serves them all); one part when parts
-    are off, off the CPU, or while dynamo traces (a compiled ``step`` is one graph of the whole batch)."""
-    batch = state.x_pos.shape[0]
-    if PARTS.size == 0 or state.x_pos.device.type != "cpu" or torch.compiler.is_compiling():
-        return [batch]
-    count = max(1, math.ceil(batch / PARTS.size))
-    return [batch // count + (k < batch % count) for k in range(count)]
+        futures = [self.pool.submit(run, share) for share in shares[1:]]
+        results = run(shares[0]) + [r for f in futures for r in f.result()]
+        return State(*(torch.cat(fields) for fields in zip(*results)))
 
 
 def system_part(sys: System, batch: int, start: int, stop: int) -> System:
@@ -80,29 +93,3 @@ def system_part(sys: System, batch: int, start: int, stop: int) -> System:
     groups = tuple(g._replace(friction=part(g.friction, 1), margin=part(g.margin, 1))
                    for g in sys.contact_groups)
     return dataclasses.replace(sys, contact_groups=groups, **changes)
-
-
-def step_in_parts(step, sys: System, state: State, ctrl: torch.Tensor, sizes: list[int]) -> State:
-    """``step(sys, state, ctrl)`` on consecutive slices of the batch of ``sizes``, joined into one State; each
-    worker thread steps a contiguous share of the parts."""
-    batch = state.x_pos.shape[0]
-    bounds = [0, *itertools.accumulate(sizes)]
-    jobs = [(system_part(sys, batch, a, b), State(*(x[a:b] for x in state)), ctrl[a:b])
-            for a, b in zip(bounds[:-1], bounds[1:])]
-    key = (sys.method, sys.dtype, tuple(sorted(set(sizes))))
-    with PARTS.lock:
-        first_run = key not in PARTS.warm
-        PARTS.warm.add(key)
-    threads = 1 if first_run else min(PARTS.workers, len(jobs))  # first run: compile on this thread alone
-    cuts = [len(jobs) * k // threads for k in range(threads + 1)]
-    shares = [jobs[a:b] for a, b in zip(cuts[:-1], cuts[1:])]
-
-    grad, inference = torch.is_grad_enabled(), torch.is_inference_mode_enabled()
-
-    def run(share):  # grad and inference mode are per thread: the workers step in the caller's
-        with torch.inference_mode(inference), torch.set_grad_enabled(grad):
-            return [step(*job) for job in share]
-
-    futures = [PARTS.pool.submit(run, share) for share in shares[1:]]
-    results = run(shares[0]) + [r for f in futures for r in f.result()]
-    return State(*(torch.cat(fields) for fields in zip(*results)))

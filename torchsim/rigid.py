@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import lanes, math
+from torchsim import lanes, spatial
 from torchsim.kinematics import Bodies
 from torchsim.system import System
 
@@ -30,15 +30,15 @@ class InverseInertia(NamedTuple):
 
 def body_inverse_inertia(sys: System) -> torch.Tensor:
     """Inverse inertia tensors in the body frames, ``(3, 3, N, 1 | B)``."""
-    return math.inv3(lanes.param(sys.body_inertia, 1, 2))
+    return spatial.inv3(lanes.param(sys.body_inertia, 1, 2))
 
 
 def inverse_inertia(sys: System, x_quat: torch.Tensor, inv_inertia_body: torch.Tensor) -> InverseInertia:
     """World-frame ``R I^-1 R^T`` for ext orientations ``x_quat (4, N + 1, B)`` and body-frame inverse inertias
     ``inv_inertia_body (3, 3, N, 1 | B)``."""
-    rot = math.quat_to_mat(x_quat)
+    rot = spatial.quat_to_mat(x_quat)
     body_rot = rot[..., :-1, :]
-    inv_world = math.mm(body_rot, inv_inertia_body, math.transpose(body_rot))
+    inv_world = spatial.mm(body_rot, inv_inertia_body, spatial.transpose(body_rot))
     inv_world = torch.cat((inv_world, torch.zeros_like(inv_world[..., :1, :])), -2)
     inv_mass = 1.0 / lanes.param(sys.body_mass, 1)
     inv_mass = torch.cat((inv_mass, torch.zeros_like(inv_mass[:1])), -2)
@@ -54,8 +54,8 @@ def point_inverse_mass(inv: InverseInertia, idx: torch.Tensor, r: torch.Tensor, 
     """Inverse mass ``(K, B)`` seen by an impulse along ``direction (3, K, B)`` applied at arm ``r (3, K, B)`` from
     the bodies' COMs."""
     m, i = gather(inv, idx)
-    rn = math.cross(r, direction)
-    return m + math.dot(rn, math.matvec(i, rn))
+    rn = spatial.cross(r, direction)
+    return m + spatial.dot(rn, spatial.matvec(i, rn))
 
 
 def pair_inverse_mass(inv: InverseInertia, a, b, r_a, r_b, direction: torch.Tensor):
@@ -69,11 +69,11 @@ def contact_arms(bodies: Bodies, a: torch.Tensor, b: torch.Tensor | None, pos: t
     """Arms ``r_a, r_b (3, C, B)`` from the COMs of bodies ``a`` and ``b (C,)`` to the points ``pos (3, C, B)``, and
     the points' relative velocity ``v_rel (3, C, B)``, body a's minus body b's (``b=None``: the world)."""
     r_a = pos - bodies.x_pos.index_select(-2, a)
-    v_rel = bodies.xd_vel.index_select(-2, a) + math.cross(bodies.xd_ang.index_select(-2, a), r_a)
+    v_rel = bodies.xd_vel.index_select(-2, a) + spatial.cross(bodies.xd_ang.index_select(-2, a), r_a)
     if b is None:
         return r_a, None, v_rel
     r_b = pos - bodies.x_pos.index_select(-2, b)
-    v_rel = v_rel - bodies.xd_vel.index_select(-2, b) - math.cross(bodies.xd_ang.index_select(-2, b), r_b)
+    v_rel = v_rel - bodies.xd_vel.index_select(-2, b) - spatial.cross(bodies.xd_ang.index_select(-2, b), r_b)
     return r_a, r_b, v_rel
 
 
@@ -83,12 +83,12 @@ def pair_velocity_change(inv: InverseInertia, a, b, r_a, r_b, p_lin, p_ang, scal
     or ``(K, B)``) averages impulses over a body's contacts."""
     ma, ia = gather(inv, a)
     dv_a = scale_a * ma * p_lin
-    dw_a = scale_a * math.matvec(ia, math.cross(r_a, p_lin) + p_ang)
+    dw_a = scale_a * spatial.matvec(ia, spatial.cross(r_a, p_lin) + p_ang)
     if b is None:
         return dv_a, dw_a, None, None
     mb, ib = gather(inv, b)
     dv_b = -scale_b * mb * p_lin
-    dw_b = -scale_b * math.matvec(ib, math.cross(r_b, p_lin) + p_ang)
+    dw_b = -scale_b * spatial.matvec(ib, spatial.cross(r_b, p_lin) + p_ang)
     return dv_a, dw_a, dv_b, dw_b
 
 
@@ -110,11 +110,11 @@ def apply_pair_position(bodies: Bodies, inv: InverseInertia, a, b, r_a, r_b, p_l
     dx_a, dth_a, dx_b, dth_b = pair_velocity_change(inv, a, b, r_a, r_b, p_lin, p_ang, scale_a, scale_b)
 
     def quat_delta(theta, quat):
-        return 0.5 * math.quat_mul(torch.cat((torch.zeros_like(theta[:1]), theta)), quat)
+        return 0.5 * spatial.quat_mul(torch.cat((torch.zeros_like(theta[:1]), theta)), quat)
 
     quat = scatter_pair(bodies.x_quat, a, b, quat_delta(dth_a, bodies.x_quat.index_select(-2, a)),
                         None if b is None else quat_delta(dth_b, bodies.x_quat.index_select(-2, b)))
-    return bodies._replace(x_pos=scatter_pair(bodies.x_pos, a, b, dx_a, dx_b), x_quat=math.normalize(quat))
+    return bodies._replace(x_pos=scatter_pair(bodies.x_pos, a, b, dx_a, dx_b), x_quat=spatial.normalize(quat))
 
 
 def active_count(a, b, active: torch.Tensor, num_ext: int):
@@ -136,7 +136,7 @@ def dof_inverse_mass(sys: System, inv: InverseInertia, axes: torch.Tensor) -> to
     child, parent = dof_bodies(sys)
     m_c, i_c = gather(inv, child)
     m_p, i_p = gather(inv, parent)
-    w_hinge = math.dot(axes, math.matvec(i_c + i_p, axes))
+    w_hinge = spatial.dot(axes, spatial.matvec(i_c + i_p, axes))
     return torch.where(lanes.param(sys.dof_is_hinge, 1), w_hinge, m_c + m_p)
 
 
@@ -148,7 +148,7 @@ def dof_rate_change(sys: System, axes: torch.Tensor, before: Bodies, after: Bodi
     rel = torch.where(lanes.param(sys.dof_is_hinge, 1),
                       d_ang.index_select(-2, child) - d_ang.index_select(-2, parent),
                       d_vel.index_select(-2, child) - d_vel.index_select(-2, parent))
-    return math.dot(axes, rel)
+    return spatial.dot(axes, rel)
 
 
 def apply_dof_impulse(sys: System, bodies: Bodies, inv: InverseInertia, axes: torch.Tensor, impulse: torch.Tensor,
@@ -176,5 +176,5 @@ def dof_wrench(sys: System, bodies: Bodies, axes: torch.Tensor, tau: torch.Tenso
     arm = bodies.x_pos.index_select(-2, child) - bodies.x_pos.index_select(-2, parent)
     zero = torch.zeros_like(bodies.x_pos)
     force = scatter_pair(zero, child, parent, lin, -lin)
-    torque = scatter_pair(zero, child, parent, ang, -ang - math.cross(arm, lin))
+    torque = scatter_pair(zero, child, parent, ang, -ang - spatial.cross(arm, lin))
     return force, torque

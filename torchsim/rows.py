@@ -2,8 +2,8 @@
 
 In the lanes layout (``torchsim.lanes``) a tensor is ``(*S, B)``: a few small static axes ``S`` (components,
 bodies, joints) in front of the batch. Compiled as it is, inductor runs each op as a loop nest over ``S`` and ``B``
-and keeps ~120 intermediate buffers per substep in memory, allocated on every call (``docs/benchmarks.md``, speed
-pass 9). A row graph unrolls ``S``: each tensor becomes an array of ``(B,)`` rows, so gathers, concatenations,
+and keeps ~120 intermediate buffers per substep in memory, allocated on every call (measured in commit
+cd4e6f0, its ``docs/benchmarks.md``). A row graph unrolls ``S``: each tensor becomes an array of ``(B,)`` rows, so gathers, concatenations,
 index sums and views become bookkeeping at trace time, and the model's constants fold into the arithmetic (a joint
 mode of 0 removes the terms it multiplies). What is left is elementwise ops on rows, which inductor fuses into a
 single loop over the batch whose intermediates stay in registers and on the stack.
@@ -11,7 +11,10 @@ single loop over the batch whose intermediates stay in registers and on the stac
 The System's tensors are baked into the graph as constants, so a row graph belongs to one System's values:
 :func:`system_key` says when it must be rebuilt. The small axes are static; the batch size is not, so one graph serves
 a training batch and a small evaluation batch alike. Batched (per-env) System parameters are not supported
-(``torchsim.pipeline`` keeps its loop-nest code for those).
+(``torchsim.Stepper`` runs those with its other strategies).
+
+The module runs past 400 lines because its two halves are one mechanism: the interpreter's rule for each aten op
+on rows, and the tracing around it that turns a lanes function into the row graph inductor compiles.
 """
 
 import math
@@ -24,11 +27,15 @@ from torch.fx import GraphModule, Interpreter
 from torch.fx.experimental.symbolic_shapes import DimDynamic, ShapeEnv, StatelessSymbolicContext
 from torch.fx.experimental.proxy_tensor import disable_proxy_modes_tracing, make_fx
 
-from torchsim import math as tmath
+from torchsim import spatial
 from torchsim.lanes import per_env
 from torchsim import row_cache
 
 aten = torch.ops.aten
+
+
+class Unsupported(NotImplementedError):
+    """The function uses an op (or an op on an axis) that row graphs cannot express."""
 
 
 def _cell(value) -> np.ndarray:
@@ -210,7 +217,7 @@ class _RowInterpreter(Interpreter):
             return Rows(_map(lambda *xs: fn(*xs, **kwargs), *tensors))
         handler = getattr(self, "_op_" + node.target.__name__.replace(".", "_"), None)
         if handler is None:
-            raise NotImplementedError(f"row graphs do not support {node.target}")
+            raise Unsupported(f"row graphs do not support {node.target}")
         return handler(tuple(node.meta["val"].shape) if isinstance(node.meta.get("val"), torch.Tensor) else None,
                        *args, **kwargs)
 
@@ -218,7 +225,7 @@ class _RowInterpreter(Interpreter):
         """The small axis that tensor dim ``dim`` names (rank ``cells.ndim + 1``, plus ``extra`` new axes)."""
         axis = dim % (cells.ndim + 1 + extra)
         if axis > cells.ndim - 1 + extra:
-            raise NotImplementedError("row graphs cannot act along the batch axis")
+            raise Unsupported("row graphs cannot act along the batch axis")
         return axis
 
     def _take(self, cells, index):
@@ -262,7 +269,7 @@ class _RowInterpreter(Interpreter):
     def _op_permute_default(self, shape, x, dims):
         c = self.cells(x)
         if dims[-1] % (c.ndim + 1) != c.ndim:
-            raise NotImplementedError("row graphs keep the batch axis last")
+            raise Unsupported("row graphs keep the batch axis last")
         return Rows(np.transpose(c, [d % (c.ndim + 1) for d in dims[:-1]]))
 
     def _op_transpose_int(self, shape, x, dim0, dim1):
@@ -342,7 +349,7 @@ def row_graph(fn, args: list) -> GraphModule:
     # traced on copies of env 0 at TRACE_BATCH envs: the physics has no data-dependent branches, so only the
     # shapes matter, and those of env 0 keep every intermediate finite
     probes = [_probe(x) for x in args]
-    with tmath.component_formulas():  # the per-component forms torch.compile traces
+    with spatial.component_formulas():  # the per-component forms torch.compile traces
         lanes_graph = make_fx(fn)(*probes)
     lanes_graph.graph.eliminate_dead_code()
     outputs = fn(*probes)
@@ -377,7 +384,7 @@ def _batch_sizes_symbolic(graph: GraphModule, args: list) -> None:
     of its first ``per_env`` input, read when the graph runs."""
     for node in graph.graph.nodes:
         if node.op == "get_attr" and TRACE_BATCH in getattr(graph, node.target).shape:
-            raise NotImplementedError("row graphs cannot hold a constant with a batch axis (one value per env)")
+            raise Unsupported("row graphs cannot hold a constant with a batch axis (one value per env)")
     first = next((i for i, x in enumerate(args) if per_env(x)), None)
     if first is None:  # a batch of one env: nothing to replace
         return
@@ -403,7 +410,7 @@ def compile_row_graph(fn, args: list, options: dict, content_key: str | None = N
     one lanes tensor ``(*S, B)``, and so does the compiled function.
 
     One output, not several: inductor then writes each row once from its single loop, where separate outputs cost
-    extra copy loops and an allocation each (speed pass 9). The compiled function has no guards, so a caller that
+    extra copy loops and an allocation each (commit cd4e6f0). The compiled function has no guards, so a caller that
     may pass other inputs keys its compiled graphs on them; without dynamo around it, a call costs ~100 us less
     than through ``torch.compile``.
 

@@ -5,6 +5,12 @@ from typing import NamedTuple
 
 import torch
 
+#: Contact points a pair of each kind evaluates per substep (a box on a plane: its 8 corners).
+POINTS_PER_PAIR = {
+    "sphere_plane": 1, "capsule_plane": 2, "box_plane": 8, "sphere_sphere": 1, "sphere_capsule": 1,
+    "capsule_capsule": 1, "sphere_box": 1, "capsule_box": 3, "box_box": 16,
+}
+
 
 class ContactGroup(NamedTuple):
     """All candidate geom pairs of one shape combination, evaluated together every substep.
@@ -158,14 +164,17 @@ class System:
     mjbody_quat: torch.Tensor
 
     @property
+    def substep_timestep(self) -> float:
+        """The length of one substep [s]: ``timestep / substeps``."""
+        return self.timestep / self.substeps
+
+    @property
     def num_bodies(self) -> int:
         return self.body_ipos.shape[0]
 
     @property
     def num_contacts(self) -> int:
         """Contact points evaluated per env and substep (a box-plane pair counts its 8 corners)."""
-        from torchsim.collision import POINTS_PER_PAIR
-
         return sum(POINTS_PER_PAIR[g.kind] * g.geom_a.shape[0] for g in self.contact_groups)
 
     @property

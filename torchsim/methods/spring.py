@@ -16,10 +16,11 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import integrator, joint_space, lanes, math, rigid
+from torchsim import integrator, joint_space, lanes, spatial, rigid
 from torchsim.actuators import dof_forces
 from torchsim.collision import contacts
 from torchsim.kinematics import Bodies, JointFrames, dof_values, joint_frames
+from torchsim.methods._method import Method
 from torchsim.system import System
 
 
@@ -31,7 +32,7 @@ def _gains(sys: System, inv_mass: torch.Tensor, h: float):
 def _subspace_inverse(k: torch.Tensor, proj: torch.Tensor) -> torch.Tensor:
     """``(P K P)^+`` restricted to the subspace of projector ``P`` (identity added on its complement); matrices
     ``(3, 3, ...)``."""
-    return math.mm(proj, math.inv3(math.mm(proj, k, proj) + (math.eye3(k, k.ndim - 2) - proj)), proj)
+    return spatial.mm(proj, spatial.inv3(spatial.mm(proj, k, proj) + (spatial.eye3(k, k.ndim - 2) - proj)), proj)
 
 
 def _joint_gains(sys: System, k_lin: torch.Tensor, k_ang: torch.Tensor, fr: JointFrames) -> torch.Tensor:
@@ -43,12 +44,12 @@ def _joint_gains(sys: System, k_lin: torch.Tensor, k_ang: torch.Tensor, fr: Join
     single hinges only, ``P_ang = I - a a^T`` for the hinge axis ``a``, and ``(P K P)^+ = K^-1 - (K^-1 a)(K^-1 a)^T
     / (a^T K^-1 a)`` (it annihilates ``a`` and inverts ``P K P`` on the plane normal to it).
     """
-    lin = _subspace_inverse(k_lin, fr.lin_proj) if sys.jnt_has_slides else math.inv3(k_lin)
+    lin = _subspace_inverse(k_lin, fr.lin_proj) if sys.jnt_has_slides else spatial.inv3(k_lin)
     if sys.jnt_kinds == (False, True, False, False, False):
         axis = fr.axes[:, :, 3]  # slot 3, the first hinge: the projector's axis a1 (zero frame, world)
-        k_inv = math.inv3(k_ang)
-        k_inv_axis = math.matvec(k_inv, axis)
-        ang = k_inv - math.outer(k_inv_axis, k_inv_axis / math.dot(axis, k_inv_axis))
+        k_inv = spatial.inv3(k_ang)
+        k_inv_axis = spatial.matvec(k_inv, axis)
+        ang = k_inv - spatial.outer(k_inv_axis, k_inv_axis / spatial.dot(axis, k_inv_axis))
     else:
         ang = _subspace_inverse(k_ang, fr.ang_proj)
     return torch.stack((lin, ang), 2)
@@ -65,7 +66,7 @@ def joint_gain(sys: System, fr: JointFrames, inv: rigid.InverseInertia) -> torch
     m, i = rigid.gather(inv, ends)
     m, i = m.unflatten(-2, (2, -1)), i.unflatten(-2, (2, -1))  # (2, J, 1 | B), (3, 3, 2, J, B): child, parent
     r = torch.stack((fr.r_child, fr.r_parent), 1)
-    k_lin = m.sum(-3) * math.eye3(m, 2) - math.skew_sandwich(r, i).sum(-3)
+    k_lin = m.sum(-3) * spatial.eye3(m, 2) - spatial.skew_sandwich(r, i).sum(-3)
     return _joint_gains(sys, k_lin, i.sum(-3), fr)
 
 
@@ -82,12 +83,12 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tenso
     r = torch.stack((fr.r_child, fr.r_parent), 1)
     vel, ang = bodies.xd_vel.index_select(-2, ends), bodies.xd_ang.index_select(-2, ends)
     vel, ang = vel.unflatten(-2, (2, -1)), ang.unflatten(-2, (2, -1))
-    twist = torch.stack((vel + math.cross(ang, r), ang), 1)  # (3, lin/ang, child/parent, J, B) at the anchor
+    twist = torch.stack((vel + spatial.cross(ang, r), ang), 1)  # (3, lin/ang, child/parent, J, B) at the anchor
     rate = twist[:, :, 0] - twist[:, :, 1]
     err = torch.stack((fr.lin_err, fr.ang_err), 1)
     kappa, zeta = sys.joint_stiffness / (h * h), sys.joint_damping / h
-    force, torque = (-math.matvec(gain, kappa * err + zeta * rate)).unbind(1)
-    moment = math.cross(r, force.unsqueeze(1)) + torque.unsqueeze(1)  # about each body's COM
+    force, torque = (-spatial.matvec(gain, kappa * err + zeta * rate)).unbind(1)
+    moment = spatial.cross(r, force.unsqueeze(1)) + torque.unsqueeze(1)  # about each body's COM
     wrench = torch.cat((force.unsqueeze(1).expand_as(moment), moment))  # (6, child/parent, J, B)
     zero = bodies.x_pos.new_zeros((6,) + bodies.x_pos.shape[1:])
     total = rigid.scatter_pair(zero, child, parent, wrench[:, 0], -wrench[:, 1])
@@ -103,7 +104,7 @@ def limit_forces(sys: System, q: torch.Tensor, qd: torch.Tensor, w: torch.Tensor
     return torch.where(lanes.param(sys.dof_limited, 1) & (violation != 0), -k * violation - c * qd, 0.0)
 
 
-def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: float,
+def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia,
                      rot: torch.Tensor | None = None) -> Bodies:
     """Velocity impulses stopping approach and separating at ``depth / (e contact_timeconst)``, Coulomb-capped
     friction; ``rot``: the bodies' rotation matrices, if at hand (``collision.contacts``).
@@ -117,12 +118,12 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, h: 
     con = contacts(sys, bodies, rot)
     a, b = con.body_a, con.body_b
     r_a, r_b, v_rel = rigid.contact_arms(bodies, a, b, con.pos)
-    v_n = math.dot(v_rel, con.normal)
+    v_n = spatial.dot(v_rel, con.normal)
     active = (con.depth > 0).to(con.depth.dtype)
     w_n = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, con.normal)
     j_n = active * torch.relu(-v_n + con.depth / (torch.e * sys.contact_timeconst)) / w_n
     v_t = v_rel - v_n * con.normal
-    speed_t = math.safe_norm(v_t)
+    speed_t = spatial.safe_norm(v_t)
     tangent = v_t / speed_t
     w_t = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, tangent)
     j_t = torch.minimum(speed_t / w_t, con.friction * j_n)
@@ -182,5 +183,9 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     after = integrator.velocity_update(sys, bodies, inv, force + spring_force, torque + spring_torque, h)
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
     if sys.contact_groups:
-        after = contact_impulses(sys, after, terms.loaded, h, inv.rot)  # poses not yet moved: the substep's rot
+        after = contact_impulses(sys, after, terms.loaded, inv.rot)  # poses not yet moved: the substep's rot
     return integrator.integrate_positions(after, h)
+
+
+#: Row graphs first on CPU (one fused loop over the batch); the compiled step with its substeps in a loop elsewhere.
+METHOD = Method("spring", step_terms, substep, default_substep_timestep=5e-4, strategies=("rows", "loop"))

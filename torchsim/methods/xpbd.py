@@ -12,10 +12,11 @@ drives (the ant), the projection's bare-inertia displacements dominate and the a
 
 import torch
 
-from torchsim import integrator, joint_space, lanes, math, rigid
+from torchsim import integrator, joint_space, lanes, spatial, rigid
 from torchsim.actuators import dof_forces
 from torchsim.collision import contacts
 from torchsim.kinematics import Bodies, dof_values, joint_frames
+from torchsim.methods._method import Method
 from torchsim.system import System
 
 
@@ -34,9 +35,9 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         m_c, i_c = rigid.gather(inv, child)
         m_p, i_p = rigid.gather(inv, parent)
         r_c, r_p = fr.r_child, fr.r_parent
-        eye = math.eye3(m_c, 2)
-        k_ll = (m_c + m_p) * eye - math.skew_sandwich(r_c, i_c) - math.skew_sandwich(r_p, i_p)
-        k_la = -(math.skew_mm(r_c, i_c) + math.skew_mm(r_p, i_p))
+        eye = spatial.eye3(m_c, 2)
+        k_ll = (m_c + m_p) * eye - spatial.skew_sandwich(r_c, i_c) - spatial.skew_sandwich(r_p, i_p)
+        k_la = -(spatial.skew_mm(r_c, i_c) + spatial.skew_mm(r_p, i_p))
         k_aa = i_c + i_p
 
         # rotation rows in hinge-slot coordinates: the 3 hinge slots as a vector (3, K, B)
@@ -49,22 +50,22 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         mode = lanes.param(sys.jnt_mode[colour], 1, 1)
         hard = mode[:3].cumsum(0) > 0  # a weld's slots; slots k >= n of an n-hinge joint (n = 1, 2)
         g = fr.hinge_dual
-        error = torch.where(hard, math.matvec(g, fr.ang_err), violation)
+        error = torch.where(hard, spatial.matvec(g, fr.ang_err), violation)
         mask = (hard | (violation != 0)).to(q.dtype)  # the diagonal of the rotation rows' projector P_m
-        gt = math.transpose(g)
+        gt = spatial.transpose(g)
 
-        a, b = k_ll, math.mm(k_la, gt) * mask[None]  # no slides: every translation is constrained, P_l = I
+        a, b = k_ll, spatial.mm(k_la, gt) * mask[None]  # no slides: every translation is constrained, P_l = I
         if sys.jnt_has_slides:  # identity on the free directions keeps the blocks invertible
             p_l = fr.lin_proj
-            a, b = math.mm(p_l, k_ll, p_l) + (eye - p_l), math.mm(p_l, b)
-        c = mask[:, None] * math.mm(g, k_aa, gt) * mask[None] + eye * (1.0 - mask)
-        a_inv = math.inv3(a)
-        bt_ainv = math.mm(math.transpose(b), a_inv)
+            a, b = spatial.mm(p_l, k_ll, p_l) + (eye - p_l), spatial.mm(p_l, b)
+        c = mask[:, None] * spatial.mm(g, k_aa, gt) * mask[None] + eye * (1.0 - mask)
+        a_inv = spatial.inv3(a)
+        bt_ainv = spatial.mm(spatial.transpose(b), a_inv)
         rhs_l, rhs_s = -fr.lin_err, -mask * error
-        mu = math.matvec(math.inv3(c - math.mm(bt_ainv, b)), rhs_s - math.matvec(bt_ainv, rhs_l))
-        p_lin = math.matvec(a_inv, rhs_l - math.matvec(b, mu))
+        mu = spatial.matvec(spatial.inv3(c - spatial.mm(bt_ainv, b)), rhs_s - spatial.matvec(bt_ainv, rhs_l))
+        p_lin = spatial.matvec(a_inv, rhs_l - spatial.matvec(b, mu))
         bodies = rigid.apply_pair_position(bodies, inv, child, parent, fr.r_child, fr.r_parent, p_lin,
-                                           math.matvec(gt, mu))
+                                           spatial.matvec(gt, mu))
     return bodies
 
 
@@ -102,14 +103,14 @@ def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.I
 
     def previous_point(idx, r):
         """Where the contact point, carried by body ``idx``, was at the start of the substep."""
-        local = math.quat_rotate_inv(bodies.x_quat.index_select(-2, idx), r)
-        return previous.x_pos.index_select(-2, idx) + math.quat_rotate(previous.x_quat.index_select(-2, idx), local)
+        local = spatial.quat_rotate_inv(bodies.x_quat.index_select(-2, idx), r)
+        return previous.x_pos.index_select(-2, idx) + spatial.quat_rotate(previous.x_quat.index_select(-2, idx), local)
 
     prev_a = previous_point(a, r_a)
     prev_b = con.pos if b is None else previous_point(b, r_b)  # a point on the static world stays put
     slip = prev_b - prev_a  # (p - prev_a) - (p - prev_b)
-    slip = slip - math.dot(slip, con.normal) * con.normal
-    slip_len = math.safe_norm(slip)
+    slip = slip - spatial.dot(slip, con.normal) * con.normal
+    slip_len = spatial.safe_norm(slip)
     tangent = slip / slip_len
     w_t = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, tangent)
     lam_t = torch.minimum(slip_len / w_t, con.friction * lam_n)
@@ -125,7 +126,7 @@ def stop_contacts(bodies: Bodies, inv: rigid.InverseInertia, con, active, scale_
     a, b = con.body_a, con.body_b
     r_a, r_b, v_rel = rigid.contact_arms(bodies, a, b, con.pos)
     w_n = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, con.normal)
-    p_lin = -active * math.dot(v_rel, con.normal) / w_n * con.normal
+    p_lin = -active * spatial.dot(v_rel, con.normal) / w_n * con.normal
     return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
 
 
@@ -155,7 +156,12 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     if sys.jnt_has_slides:
         moved = correct_slides(sys, moved, inv, q_pred)
     xd_vel = (moved.x_pos - bodies.x_pos) / h
-    xd_ang = math.quat_to_rot_vec(math.quat_mul(moved.x_quat, math.quat_conj(bodies.x_quat))) / h
+    xd_ang = spatial.quat_to_rot_vec(spatial.quat_mul(moved.x_quat, spatial.quat_conj(bodies.x_quat))) / h
     moved = stop_contacts(moved._replace(xd_vel=xd_vel, xd_ang=xd_ang), inv, con, active, scale_a, scale_b)
     moved, _ = joint_space.hinge_rate_solve(sys, moved, inv, fr, qd_pred, torch.zeros_like(qd_pred))
     return moved
+
+
+#: Compiled substeps called from Python: its step compiled as one loop kept gcc busy for over 10 minutes without
+#: finishing (spring's builds in ~2.5); its row graph was not tried.
+METHOD = Method("xpbd", step_terms, substep, default_substep_timestep=5e-4, strategies=("calls",))

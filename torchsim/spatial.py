@@ -15,8 +15,11 @@ written per component, which inductor fuses into elementwise loops over the batc
 
 import contextlib
 import contextvars
+import types
 
 import torch
+
+from torchsim.lanes import components_last
 
 
 def _quat_product_table() -> torch.Tensor:
@@ -263,3 +266,10 @@ def angle_about(axis: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.T
     u_p = u - dot(u, axis) * axis
     v_p = v - dot(v, axis) * axis
     return torch.atan2(dot(axis, cross(u_p, v_p)), dot(u_p, v_p))
+
+
+#: The rotations above for batch-first tensors with components last, as ``State``'s fields and the envs hold them
+#: (e.g. ``batch_first.quat_rotate(state.x_quat, v)`` with ``(B, N, 4)`` and ``(B, N, 3)``).
+batch_first = types.SimpleNamespace(
+    cross=components_last(cross), quat_rotate=components_last(quat_rotate),
+    quat_rotate_inv=components_last(quat_rotate_inv), quat_to_mat=components_last(quat_to_mat, 2))

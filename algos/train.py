@@ -1,0 +1,52 @@
+"""Train PPO or SAC on a torchsim env: ``python -m torchsim.train [algo=ppo|sac] [env=<name>] [key=value ...]``
+(``torchsim/train.py`` runs this module).
+
+Configs live in ``torchsim/algos/configs`` (``--cfg job`` prints the composed one); outputs (CSV logs, checkpoints,
+``curves.png``, ``policy.gif``, ``summary.json``) go to the Hydra run dir ``outputs/<algo>_<env>/<time>/``.
+"""
+
+import logging
+import pathlib
+import sys
+
+import hydra
+import torch
+from hydra.core.hydra_config import HydraConfig
+from omegaconf import DictConfig
+
+import torchsim.algos
+import torchsim.progress
+from torchsim.algos import ppo, sac
+from torchsim.algos.common import Run, TrainingDiverged
+
+CONFIG_DIR = str(pathlib.Path(torchsim.algos.__file__).parent / "configs")
+RECIPES = {"ppo": ppo.train, "sac": sac.train}
+
+
+def run(cfg: DictConfig, out_dir) -> Run:
+    """Run the recipe ``cfg.algo.name`` with ``cfg``, writing into ``out_dir``; return the finished run."""
+    prepare(cfg)
+    return RECIPES[cfg.algo.name](cfg, out_dir)
+
+
+def prepare(cfg: DictConfig) -> None:
+    """The process-wide settings a run of ``cfg`` uses: compile announcements, threads, seed (the envs' steppers
+    follow ``cfg.compile``: ``torchsim.algos.common.make_env``)."""
+    torchsim.progress.announce_torch_compiles()
+    logging.getLogger("torchrl").setLevel(logging.WARNING)  # its storage-allocation notices are not progress
+    if cfg.threads is not None:
+        torch.set_num_threads(cfg.threads)
+    torch.manual_seed(cfg.seed)
+
+
+@hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
+def main(cfg: DictConfig) -> None:
+    try:
+        run(cfg, HydraConfig.get().runtime.output_dir)
+    except TrainingDiverged as err:
+        print(f"training diverged: {err}", file=sys.stderr)
+        sys.exit(1)
+
+
+if __name__ == "__main__":
+    main()

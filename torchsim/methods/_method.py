@@ -1,0 +1,23 @@
+"""The record each solution method module ends with (``torchsim.methods``)."""
+
+from typing import Callable, NamedTuple
+
+
+class Method(NamedTuple):
+    """What the engine needs of a solution method.
+
+    Attributes:
+        name: the ``method`` argument of ``torchsim.load_mjcf``.
+        step_terms: ``(sys, bodies, h) -> terms``: what a step's substeps share, built from the poses at the step's
+            start (``h``: the substep length [s], ``System.substep_timestep``).
+        substep: ``(sys, bodies, ctrl, terms, h) -> bodies``: one substep, lanes layout.
+        default_substep_timestep: the substep length [s] ``load_mjcf`` aims at (substeps = ceil(timestep / it)).
+        strategies: the compiled strategies of ``torchsim.Stepper`` the method supports, the fastest first
+            (``torchsim.stepper.choose_strategy``); the reference (eager) step serves every method.
+    """
+
+    name: str
+    step_terms: Callable
+    substep: Callable
+    default_substep_timestep: float
+    strategies: tuple[str, ...]

@@ -1,0 +1,280 @@
+"""How a step runs: a ``Stepper`` holds one System's execution strategy and its compiled code.
+
+    stepper = torchsim.Stepper(sys)      # the fastest measured strategy for sys on its device
+    state = stepper(state, ctrl)         # the results of torchsim.step(sys, state, ctrl), to float rounding
+
+``torchsim.step`` is what a step computes; a Stepper is how it is executed. Strategies (their measured reasons:
+``docs/physics.md``, "How a step runs"):
+
+- ``eager``: the reference step itself.
+- ``rows`` (spring, CPU, parameters shared by every env): the substep as a row graph (``torchsim.rows``: every
+  small axis unrolled, the model's constants folded in), which inductor compiles into one loop over the batch on
+  every intra-op thread; Python calls it ``sys.substeps`` times between the compiled step terms and step end.
+  One graph serves every batch of more than one env; a batch of one compiles its own.
+- ``loop``: the whole step compiled by ``torch.compile`` as one graph, its substeps a ``while_loop``.
+- ``calls``: the substep and the step's end compiled separately, called from a Python loop.
+
+``loop`` and ``calls`` step CPU batches in parts of ``part_size`` envs on ``threads`` threads (``torchsim.parts``).
+A step that autograd records (an input requires grad, grad mode on) runs the reference step, with a warning.
+Steppers hold no process-wide state: two Systems with different strategies step side by side.
+"""
+
+import functools
+import math
+import threading
+import warnings
+
+import torch
+import torch.utils._pytree as pytree
+
+from torchsim import lanes, pipeline, progress, row_cache, rows
+from torchsim.kinematics import Bodies
+from torchsim.methods import METHODS
+from torchsim.parts import Parts
+from torchsim.state import State
+from torchsim.system import System
+
+STRATEGIES = ("eager", "rows", "loop", "calls")
+
+
+def choose_strategy(sys: System) -> str:
+    """The fastest measured strategy for ``sys`` on its device: the first of its method's ``strategies`` that
+    applies (``rows`` only on CPU with parameters shared by every env), else the next one."""
+    for strategy in METHODS[sys.method].strategies:
+        if _unsupported(sys, strategy) is None:
+            return strategy
+    return "eager"
+
+
+def _unsupported(sys: System, strategy: str) -> str | None:
+    """Why ``strategy`` cannot run ``sys`` (None: it can)."""
+    if strategy not in STRATEGIES:
+        return f"unknown strategy {strategy!r}; expected 'auto' or one of {STRATEGIES}"
+    if strategy != "eager" and strategy not in METHODS[sys.method].strategies:
+        return f"the {sys.method} method supports {('eager',) + METHODS[sys.method].strategies}, not {strategy!r}"
+    if strategy == "rows" and sys.device.type != "cpu":
+        return "row graphs run on CPU only"
+    if strategy == "rows" and sys.batched:
+        return "row graphs bake the System's parameters in, so they need parameters shared by every env"
+    return None
+
+
+class Stepper:
+    """``torchsim.step`` for one System, run by one strategy (``"auto"``: :func:`choose_strategy`).
+
+    Args:
+        sys: the model; ``stepper.sys``.
+        strategy: ``"auto"`` or one of ``STRATEGIES``; a strategy that cannot run ``sys`` raises ValueError.
+        part_size, threads: ``loop`` and ``calls`` on CPU: batches stepped in parts of at most ``part_size`` envs
+            (0: whole) on ``threads`` threads (default ``torch.get_num_threads()``).
+        inductor_options: extra options for inductor (e.g. ``{"cpp.simdlen": 256}`` for AVX2 code).
+
+    Each strategy compiles on its first step: a ``rows`` stepper then builds its row graph (minutes the first time;
+    later from the on-disk cache, ``torchsim.row_cache``), and if the row graph cannot express the substep, the
+    stepper falls back to the method's next strategy with one warning instead of failing.
+    """
+
+    def __init__(self, sys: System, strategy: str = "auto", *, part_size: int = 512, threads: int | None = None,
+                 inductor_options: dict | None = None, _compiled: dict | None = None):
+        self.sys, self.requested = sys, strategy
+        self.strategy = choose_strategy(sys) if strategy == "auto" else strategy
+        reason = _unsupported(sys, self.strategy)
+        if reason is not None:
+            raise ValueError(f"Stepper: {reason}")
+        self.part_size = part_size
+        self.threads = torch.get_num_threads() if threads is None else threads
+        self.inductor_options = dict(inductor_options or {})
+        self._compiled = {} if _compiled is None else _compiled
+        self._row_graphs: dict[tuple, object] = {}
+        self._row_lock = threading.Lock()
+        threaded = self.strategy in ("loop", "calls") and sys.device.type == "cpu"
+        self.parts = Parts(part_size if threaded else 0, self.threads if threaded else 1)
+
+    def __repr__(self) -> str:
+        return f"Stepper({self.sys.method}, {self.strategy!r}, {self.sys.device}, {self.sys.dtype})"
+
+    @property
+    def num_row_graphs(self) -> int:
+        """Row graphs built so far (one serves every batch of more than one env; a batch of one builds its own)."""
+        return len(self._row_graphs)
+
+    def for_system(self, sys: System) -> "Stepper":
+        """A stepper like this one for ``sys`` (e.g. with per-env parameters): this one if ``sys`` is its System;
+        compiled code that takes the System as an input is shared, a row graph (which bakes it in) is not."""
+        if sys is self.sys:
+            return self
+        return Stepper(sys, self.requested, part_size=self.part_size, threads=self.threads,
+                       inductor_options=self.inductor_options, _compiled=self._compiled)
+
+    def __call__(self, state: State, ctrl: torch.Tensor) -> State:
+        sys = self.sys
+        if self.strategy == "eager" or torch.compiler.is_compiling():
+            return pipeline.step(sys, state, ctrl)
+        pipeline.check(sys, "ctrl", ctrl, sys.nu, state.x_pos.shape[0])
+        if pipeline.records_grad(sys, state, ctrl):
+            _warn_eager_for_grad()
+            return pipeline.run_substeps(sys, state, ctrl)
+        if self.strategy == "rows":
+            try:
+                return self._rows_step(state, ctrl)
+            except rows.Unsupported as err:  # raised while building the row graph, before anything is stepped
+                self._fall_back(err)
+                return self(state, ctrl)
+        run = self._compiled_loop() if self.strategy == "loop" else self._compiled_calls()
+        sizes = self.parts.sizes(state)
+        if len(sizes) > 1:
+            return self.parts.step(run, sys, state, ctrl, sizes)
+        return run(sys, state, ctrl)
+
+    # -- loop and calls
+    def _options(self, threaded: bool) -> dict:
+        """Inductor's options: its C++ wrapper (a substep is one kernel with ~120 buffers, and driving those from
+        Python cost about as much as the kernel below batch ~100); single-threaded kernels where parts run on
+        threads (their OpenMP loops do not scale)."""
+        return {"cpp_wrapper": True} | ({"cpp.threads": 1} if threaded else {}) | self.inductor_options
+
+    def _compile(self, name: str, fn, threaded: bool = False):
+        """``torch.compile(fn)`` once per name and options, shared with the steppers ``for_system`` made."""
+        options = self._options(threaded and self.parts.workers > 1)
+        key = (name, tuple(sorted(options.items())))
+        if key not in self._compiled:
+            self._compiled[key] = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
+        return self._compiled[key]
+
+    def _compiled_loop(self):
+        return self._compile("loop", pipeline.run_substeps, threaded=True)
+
+    def _compiled_calls(self):
+        method = METHODS[self.sys.method]
+        return functools.partial(pipeline.run_substeps, substep=self._compile(method.name, method.substep, True),
+                                 finish_step=self._compile("finish", pipeline.finish, True))
+
+    # -- rows
+    def _fall_back(self, err: Exception) -> None:
+        """The row graph cannot express the substep: use the method's next strategy, with one warning."""
+        fallback = [s for s in METHODS[self.sys.method].strategies[1:] if _unsupported(self.sys, s) is None]
+        self.strategy = fallback[0] if fallback else "eager"
+        warnings.warn(f"Stepper: the {self.sys.method} substep cannot run as a row graph ({err}); using the "
+                      f"{self.strategy} strategy instead", stacklevel=3)
+        threaded = self.strategy in ("loop", "calls") and self.sys.device.type == "cpu"
+        self.parts = Parts(self.part_size if threaded else 0, self.threads if threaded else 1)
+
+    def _rows_step(self, state: State, ctrl: torch.Tensor) -> State:
+        """The step with its substep a row graph that Python calls once per substep, between the compiled step terms
+        and step end (dynamo, batch axis dynamic). The poses travel between substeps as one ``(rows, B)`` tensor,
+        the graph's one output."""
+        sys, h = self.sys, self.sys.substep_timestep
+        method = METHODS[sys.method]
+        bodies, ctrl = pipeline.to_lanes(state, ctrl)
+        _batch_dynamic((), bodies)  # the step terms' only per-env inputs
+        terms = self._compile_whole("terms", _step_terms)(sys, bodies, h)
+        inputs, spec = pytree.tree_flatten((ctrl, terms))
+        shapes = [x.shape for x in bodies]
+        # The controls and terms travel as two tensors, their per-env rows and their shared ones: a compiled call
+        # costs ~0.5 us per tensor argument, and there are ~200.
+        per_env_rows, shared_rows, layout, unpack = _pack(inputs)
+
+        def substep_of_rows(poses, per_env_rows, shared_rows):
+            ctrl, terms = pytree.tree_unflatten(unpack(per_env_rows, shared_rows), spec)
+            return _join_poses(method.substep(sys, Bodies(*_split_poses(poses, shapes)), ctrl, terms, h))
+
+        poses = _join_poses(bodies)
+        substep = self._row_graph(substep_of_rows, [poses, per_env_rows, shared_rows], layout)
+        for _ in range(sys.substeps):
+            poses = substep(poses, per_env_rows, shared_rows)
+        bodies = Bodies(*_split_poses(poses, shapes))
+        _batch_dynamic(state, bodies)
+        return self._compile_whole("finish", pipeline.finish)(sys, state, bodies)
+
+    def _compile_whole(self, name: str, fn):
+        """``torch.compile(fn)`` for the row-graph step's terms and end: the whole batch at once, its kernels on
+        every intra-op thread."""
+        options = {"cpp_wrapper": True} | self.inductor_options
+        key = ("whole", name, tuple(sorted(options.items())))
+        if key not in self._compiled:
+            self._compiled[key] = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
+        return self._compiled[key]
+
+    def _row_graph(self, substep, args: list, layout: tuple):
+        """``substep`` (a function of the tensors ``args``, which pack leaves of ``layout``) as a compiled row graph
+        for inputs like ``args`` with any number of envs; built on first use for the System's values and these
+        shapes (a tensor of the System edited in place builds a new one)."""
+        sys = self.sys
+        key = (rows.system_key(sys), layout, tuple((x.shape[:-1], lanes.per_env(x), x.dtype) for x in args))
+        graph = self._row_graphs.get(key)
+        if graph is None:
+            with self._row_lock:  # steps on several threads: one builds it
+                graph = self._row_graphs.get(key)
+                if graph is None:
+                    # a row graph's ops all fuse into one loop: no cap on the size of a fused kernel; its buffers
+                    # in one pool
+                    options = {"cpp_wrapper": True, "max_fusion_size": 1 << 20, "memory_planning": True}
+                    options |= self.inductor_options
+                    batches = "any batch" if lanes.per_env(args[0]) else "batch 1"
+                    with progress.announce(f"the {sys.method} substep as a row graph ({sys.num_bodies} bodies, "
+                                           f"{batches}, {args[0].dtype})"):
+                        graph = self._row_graphs[key] = rows.compile_row_graph(
+                            substep, args, options, row_cache.content_key(sys, args, options, layout))
+        return graph
+
+
+def _step_terms(sys: System, bodies: Bodies, h: float):
+    """The method's step terms, as one function to compile."""
+    return METHODS[sys.method].step_terms(sys, bodies, h)
+
+
+@functools.cache
+def _warn_eager_for_grad() -> None:
+    warnings.warn("torchsim.Stepper: an input requires grad, so this step and later ones that record gradients run "
+                  "the reference step, not compiled (the compiled substep loop does not give correct gradients in "
+                  "torch 2.13)", stacklevel=3)
+
+
+def _batch_dynamic(batch_first, lanes_last) -> None:
+    """Mark the batch axis of a row-graph step's tensors (``batch_first``: public state, ``lanes_last``: lanes
+    tensors) dynamic for dynamo, as the row graph's is: the step's terms and end then compile once for every batch
+    of more than one env, so that an evaluation batch shares the training batch's compiled step."""
+    for x in batch_first:
+        if x.shape[0] > 1:
+            torch._dynamo.maybe_mark_dynamic(x, 0)
+    for x in lanes_last:
+        if lanes.per_env(x):
+            torch._dynamo.maybe_mark_dynamic(x, x.ndim - 1)
+
+
+def _join_poses(bodies: Bodies) -> torch.Tensor:
+    """The lanes tensors of ``bodies`` as the rows of one ``(rows, B)`` tensor; ``_split_poses`` undoes it."""
+    return torch.cat([x.reshape(-1, x.shape[-1]) for x in bodies])
+
+
+def _split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
+    return [x.view(*shape[:-1], poses.shape[-1])  # the batch size of poses: row graphs trace at another
+            for x, shape in zip(poses.split([shape[:-1].numel() for shape in shapes]), shapes)]
+
+
+def _pack(leaves: list):
+    """Lanes tensors (or None) as two: ``per_env_rows (R, B)`` and ``shared_rows (S, 1)``; also their ``layout``
+    (each leaf's small axes and whether it is per env, or None) and ``unpack(per_env_rows, shared_rows)``, which
+    gives the list back as views, its batch size read from ``per_env_rows``."""
+    layout = tuple(None if x is None else (tuple(x.shape[:-1]), lanes.per_env(x)) for x in leaves)
+    given = [x for x in leaves if x is not None]
+    batch = max(x.shape[-1] for x in given)
+
+    def stack(env: bool, width: int) -> torch.Tensor:
+        return torch.cat([given[0].new_zeros((0, width))] +
+                         [x.reshape(-1, width) for x in given if lanes.per_env(x) == env])
+
+    def unpack(per_env_rows: torch.Tensor, shared_rows: torch.Tensor) -> list:
+        at, out = {True: 0, False: 0}, []
+        for leaf in layout:
+            if leaf is None:
+                out.append(None)
+                continue
+            shape, env = leaf
+            n = math.prod(shape)
+            source = per_env_rows if env else shared_rows
+            out.append(source[at[env]:at[env] + n].view(*shape, source.shape[-1]))
+            at[env] += n
+        return out
+
+    return stack(True, batch), stack(False, 1), layout, unpack
