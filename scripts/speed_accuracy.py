@@ -295,9 +295,10 @@ def torchsim_points(name: str, model: Model, ref: list, method: str, dtype: str,
     for substeps in [default] if args.quick else model.substeps:
         t0 = time.perf_counter()
         sys_ = base.replace(substeps=substeps)
-        runs, gap, diverged = torchsim_runs(stepper.for_system(sys_), model, m)
+        sub_stepper = stepper.for_system(sys_)  # one per substep count: a row graph bakes the substep length in
+        runs, gap, diverged = torchsim_runs(sub_stepper, model, m)
         r = row(name, model, "torchsim", method, dtype, substeps, base.timestep,
-                torchsim_rate(stepper.for_system(sys_), model, m, args.batch, args.repeats), errors(model, runs, ref), args,
+                torchsim_rate(sub_stepper, model, m, args.batch, args.repeats), errors(model, runs, ref), args,
                 anchor_gap_m=gap, diverged=diverged, compiled=not args.eager, compile_s=compile_s,
                 default=method == "spring" and dtype == "float32" and substeps == default)
         rows.append(r)

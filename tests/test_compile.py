@@ -140,3 +140,8 @@ def test_strategy_selection():
         torchsim.Stepper(xpbd, "loop")
     with pytest.raises(ValueError, match="unknown strategy"):
         torchsim.Stepper(spring, "fast")
+    # new per-env parameters (set_physics at a reset) keep the stepper's parts: their threads, and which part sizes
+    # have compiled, so the next step runs on every thread at once
+    looped = torchsim.Stepper(batched, "loop", threads=2)
+    redrawn = looped.for_system(spring.replace(body_mass=spring.body_mass.expand(3, -1) * 1.1))
+    assert redrawn.strategy == "loop" and redrawn.parts is looped.parts

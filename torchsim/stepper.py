@@ -75,7 +75,7 @@ class Stepper:
     """
 
     def __init__(self, sys: System, strategy: str = "auto", *, part_size: int = 512, threads: int | None = None,
-                 inductor_options: dict | None = None, _compiled: dict | None = None):
+                 inductor_options: dict | None = None, _shared: dict | None = None):
         self.sys, self.requested = sys, strategy
         self.strategy = choose_strategy(sys) if strategy == "auto" else strategy
         reason = _unsupported(sys, self.strategy)
@@ -84,11 +84,11 @@ class Stepper:
         self.part_size = part_size
         self.threads = torch.get_num_threads() if threads is None else threads
         self.inductor_options = dict(inductor_options or {})
-        self._compiled = {} if _compiled is None else _compiled
+        # compiled functions and part settings, shared with the steppers ``for_system`` makes
+        self._shared = {} if _shared is None else _shared
         self._row_graphs: dict[tuple, object] = {}
         self._row_lock = threading.Lock()
-        threaded = self.strategy in ("loop", "calls") and sys.device.type == "cpu"
-        self.parts = Parts(part_size if threaded else 0, self.threads if threaded else 1)
+        self.parts = self._parts()
 
     def __repr__(self) -> str:
         return f"Stepper({self.sys.method}, {self.strategy!r}, {self.sys.device}, {self.sys.dtype})"
@@ -100,11 +100,12 @@ class Stepper:
 
     def for_system(self, sys: System) -> "Stepper":
         """A stepper like this one for ``sys`` (e.g. with per-env parameters): this one if ``sys`` is its System;
-        compiled code that takes the System as an input is shared, a row graph (which bakes it in) is not."""
+        compiled code that takes the System as an input is shared, and so are the parts (their threads, and which
+        part sizes have compiled); a row graph, which bakes the System in, is not."""
         if sys is self.sys:
             return self
         return Stepper(sys, self.requested, part_size=self.part_size, threads=self.threads,
-                       inductor_options=self.inductor_options, _compiled=self._compiled)
+                       inductor_options=self.inductor_options, _shared=self._shared)
 
     def __call__(self, state: State, ctrl: torch.Tensor) -> State:
         sys = self.sys
@@ -127,6 +128,15 @@ class Stepper:
         return run(sys, state, ctrl)
 
     # -- loop and calls
+    def _parts(self) -> Parts:
+        """How this strategy cuts CPU batches: parts on threads for ``loop`` and ``calls``, else whole batches."""
+        threaded = self.strategy in ("loop", "calls") and self.sys.device.type == "cpu"
+        size, workers = (self.part_size, self.threads) if threaded else (0, 1)
+        key = ("parts", size, workers)
+        if key not in self._shared:
+            self._shared[key] = Parts(size, workers)
+        return self._shared[key]
+
     def _options(self, threaded: bool) -> dict:
         """Inductor's options: its C++ wrapper (a substep is one kernel with ~120 buffers, and driving those from
         Python cost about as much as the kernel below batch ~100); single-threaded kernels where parts run on
@@ -134,12 +144,13 @@ class Stepper:
         return {"cpp_wrapper": True} | ({"cpp.threads": 1} if threaded else {}) | self.inductor_options
 
     def _compile(self, name: str, fn, threaded: bool = False):
-        """``torch.compile(fn)`` once per name and options, shared with the steppers ``for_system`` made."""
+        """``torch.compile(fn)`` once per name and options, shared with the steppers ``for_system`` made;
+        ``threaded``: its kernels run inside parts on threads (else the whole batch on every intra-op thread)."""
         options = self._options(threaded and self.parts.workers > 1)
         key = (name, tuple(sorted(options.items())))
-        if key not in self._compiled:
-            self._compiled[key] = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
-        return self._compiled[key]
+        if key not in self._shared:
+            self._shared[key] = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
+        return self._shared[key]
 
     def _compiled_loop(self):
         return self._compile("loop", pipeline.run_substeps, threaded=True)
@@ -156,8 +167,7 @@ class Stepper:
         self.strategy = fallback[0] if fallback else "eager"
         warnings.warn(f"Stepper: the {self.sys.method} substep cannot run as a row graph ({err}); using the "
                       f"{self.strategy} strategy instead", stacklevel=3)
-        threaded = self.strategy in ("loop", "calls") and self.sys.device.type == "cpu"
-        self.parts = Parts(self.part_size if threaded else 0, self.threads if threaded else 1)
+        self.parts = self._parts()
 
     def _rows_step(self, state: State, ctrl: torch.Tensor) -> State:
         """The step with its substep a row graph that Python calls once per substep, between the compiled step terms
@@ -167,7 +177,7 @@ class Stepper:
         method = METHODS[sys.method]
         bodies, ctrl = pipeline.to_lanes(state, ctrl)
         _batch_dynamic((), bodies)  # the step terms' only per-env inputs
-        terms = self._compile_whole("terms", _step_terms)(sys, bodies, h)
+        terms = self._compile("terms", _step_terms)(sys, bodies, h)
         inputs, spec = pytree.tree_flatten((ctrl, terms))
         shapes = [x.shape for x in bodies]
         # The controls and terms travel as two tensors, their per-env rows and their shared ones: a compiled call
@@ -184,16 +194,7 @@ class Stepper:
             poses = substep(poses, per_env_rows, shared_rows)
         bodies = Bodies(*_split_poses(poses, shapes))
         _batch_dynamic(state, bodies)
-        return self._compile_whole("finish", pipeline.finish)(sys, state, bodies)
-
-    def _compile_whole(self, name: str, fn):
-        """``torch.compile(fn)`` for the row-graph step's terms and end: the whole batch at once, its kernels on
-        every intra-op thread."""
-        options = {"cpp_wrapper": True} | self.inductor_options
-        key = ("whole", name, tuple(sorted(options.items())))
-        if key not in self._compiled:
-            self._compiled[key] = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
-        return self._compiled[key]
+        return self._compile("finish", pipeline.finish)(sys, state, bodies)
 
     def _row_graph(self, substep, args: list, layout: tuple):
         """``substep`` (a function of the tensors ``args``, which pack leaves of ``layout``) as a compiled row graph
