@@ -9,6 +9,8 @@ import torch
 REPO = Path(__file__).resolve().parent.parent
 ANT = REPO / "envs" / "assets" / "ant.xml"
 HUMANOID = REPO / "envs" / "assets" / "humanoid.xml"
+#: Every model the envs ship (MJCF, and the UR5e's URDF, which ``load_model`` translates).
+SHIPPED = sorted(p for p in ANT.parent.iterdir() if p.suffix in (".xml", ".urdf"))
 METHODS = ["xpbd", "spring"]
 F64 = torch.float64
 
@@ -131,3 +133,12 @@ def mid_range_q(m: mujoco.MjModel, lift: float = 0.0) -> np.ndarray:
             q[m.jnt_qposadr[j]] = m.jnt_range[j].mean()
     q[2] += lift
     return q
+
+
+def load_model(path: Path) -> tuple[str, mujoco.MjModel]:
+    """A shipped model's MJCF text (a URDF as the env translates it) and its MuJoCo model."""
+    from torchsim.io_urdf import urdf_to_mjcf  # engine code, imported where a test asks for it
+
+    xml = urdf_to_mjcf(path) if path.suffix == ".urdf" else path.read_text()
+    return xml, mujoco.MjModel.from_xml_string(xml)
+

@@ -5,32 +5,26 @@ row-graph step as ``torchsim.Stepper`` uses it. Every shipped model's substep ru
 interpreter, so an op it does not cover shows here, not at step time.
 """
 
-import mujoco
 import numpy as np
 import pytest
 import torch
 import torch.utils._pytree as pytree
 
 import torchsim
-from models import ANT, F64, random_q
+from models import ANT, F64, SHIPPED, load_model, random_q
 from torchsim import rows, stepper
-from torchsim.io_urdf import urdf_to_mjcf
 from torchsim.kinematics import with_world
 from torchsim.lanes import to_lanes
 from torchsim.methods import METHODS
 
-ASSETS = ANT.parent
 SPRING = METHODS["spring"]
-#: Every model the envs ship (MJCF, and the UR5e's URDF as the env translates it).
-SHIPPED = sorted(p for p in ASSETS.iterdir() if p.suffix in (".xml", ".urdf"))
 
 
 def _substep_inputs(path, batch=3, seed=0):
     """A spring System and the flat lanes inputs of one substep: random poses (some below the floor, so contacts
     act), velocities and controls."""
-    xml = urdf_to_mjcf(path) if path.suffix == ".urdf" else path.read_text()
+    xml, m = load_model(path)
     sys = torchsim.load_mjcf(xml, dtype=F64)
-    m = mujoco.MjModel.from_xml_string(xml)
     rng = np.random.default_rng(seed)
     q = torch.tensor(random_q(m, batch, rng))
     state = torchsim.init(sys, q, torch.tensor(rng.normal(0, 1, (batch, sys.nv))))

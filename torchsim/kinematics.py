@@ -77,6 +77,17 @@ def _rotate_about(axis, v, angle):
     return v * torch.cos(angle) + spatial.cross(axis, v) * torch.sin(angle)
 
 
+class _Ends(NamedTuple):
+    """One end (parent or child body) of each joint, lanes: ``x, vel, ang (3, J, B)``, ``quat (4, J, B)``,
+    ``rot (3, 3, J, B)`` (the body's rotation matrix)."""
+
+    x: torch.Tensor
+    quat: torch.Tensor
+    vel: torch.Tensor
+    ang: torch.Tensor
+    rot: torch.Tensor
+
+
 def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None, coordinates: bool = True,
                  all_slots: bool = True, rot: torch.Tensor | None = None) -> JointFrames:
     """Measure the joints ``joints (K,)`` (default: all) from lanes ext body states (see :class:`JointFrames`;
@@ -94,63 +105,89 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     def sel(t):
         return t if joints is None else t.index_select(0, joints)
 
-    def const(field, entities, comps):  # a joint field, selected, as a lanes constant
-        return lanes.param(sel(field), entities, comps)
+    def ends(index):
+        x, quat, vel, ang = (t.index_select(-2, index) for t in bodies)
+        return _Ends(x, quat, vel, ang, spatial.quat_to_mat(quat) if rot is None else rot.index_select(-2, index))
 
     weld, one, two, three, _ = sys.jnt_kinds
-    xp, qp, vp, wp = (t.index_select(-2, sel(sys.jnt_parent)) for t in bodies)
-    xc, qc, vc, wc = (t.index_select(-2, sel(sys.jnt_child)) for t in bodies)
-    if rot is None:
-        rot_p, rot_c = spatial.quat_to_mat(qp), spatial.quat_to_mat(qc)
-    else:
-        rot_p, rot_c = rot.index_select(-2, sel(sys.jnt_parent)), rot.index_select(-2, sel(sys.jnt_child))
-    quat0_p = const(sys.jnt_quat0, 1, 1)  # zero frame of the child, in the parent's frame
-    quat0 = spatial.quat_mul(qp, quat0_p)  # ... and in the world
-    r_parent = spatial.matvec(rot_p, const(sys.jnt_anchor_parent, 1, 1))
-    r_child = spatial.matvec(rot_c, const(sys.jnt_anchor_child, 1, 1))
-    delta = (xc + r_child) - (xp + r_parent)
-    mode = const(sys.jnt_mode, 2, 0)  # (J, 5, 1): weld, 1, 2, 3 hinges, ball
-    axes = const(sys.jnt_axes, 2, 1)  # (3, J, 3, 1): a1..a3 along axis -2, zero frame (= child frame)
-    a1, a2, a3 = axes.unbind(-2)
+    parent, child = ends(sel(sys.jnt_parent)), ends(sel(sys.jnt_child))
+    quat0_p = lanes.param(sel(sys.jnt_quat0), 1, 1)  # zero frame of the child, in the parent's frame
+    quat0 = spatial.quat_mul(parent.quat, quat0_p)  # ... and in the world
+    r_parent = spatial.matvec(parent.rot, lanes.param(sel(sys.jnt_anchor_parent), 1, 1))
+    r_child = spatial.matvec(child.rot, lanes.param(sel(sys.jnt_anchor_child), 1, 1))
+    delta = (child.x + r_child) - (parent.x + r_parent)
+    mode = lanes.param(sel(sys.jnt_mode), 2, 0)  # (J, 5, 1): weld, 1, 2, 3 hinges, ball
+    axes = lanes.param(sel(sys.jnt_axes), 2, 1)  # (3, J, 3, 1): a1..a3 along axis -2, zero frame (= child frame)
     axes_p = spatial.quat_rotate(quat0_p.unsqueeze(-2), axes)  # (3, J, 3, 1): a1..a3 in the parent's frame
     dof_slots_only = not (all_slots or two or three)  # then every hinge dof is a single hinge's slot a1
     if dof_slots_only:
-        a1_w, a2_w = (spatial.matvec(rot_p, axes_p[:, :, k]) for k in (0, 1))
+        axes0 = None
+        a1_w, a2_w = (spatial.matvec(parent.rot, axes_p[:, :, k]) for k in (0, 1))
     else:
-        axes0 = spatial.matvec(rot_p.unsqueeze(-2), axes_p)  # (3, J, 3, B): a1..a3 in the zero frame, world
+        axes0 = spatial.matvec(parent.rot.unsqueeze(-2), axes_p)  # (3, J, 3, B): a1..a3 in the zero frame, world
         a1_w, a2_w = axes0[:, :, 0], axes0[:, :, 1]
-    eye = spatial.eye3(xp, 2)
-    zero3 = torch.zeros_like(delta)
+    rot0 = spatial.quat_to_mat(quat0) if sys.jnt_has_slides else None
+    a2_c = spatial.matvec(child.rot, axes[:, :, 1]) if two or coordinates else None  # a2 turning with the child
+    n12 = spatial.normalize(spatial.cross(a1_w, a2_c)) if two else torch.zeros_like(delta)
+    constraint = _constraint_errors(sys, sel, child, quat0, rot0, delta, mode, axes, a1_w, a2_c, n12)
+    if not coordinates:
+        return JointFrames(None, None, None, r_parent, r_child, *constraint, None, None, None)
 
-    # constraint errors: the anchor offset along constrained directions, and the rotation out of the hinge axes
+    quat_rel = spatial.quat_mul(spatial.quat_conj(quat0), child.quat)
+    ang_rel_w = child.ang - parent.ang
+    q_hinge, qd_hinge, hinge_axes, hinge_dual = _hinge_coordinates(
+        sys, sel, child, quat_rel, ang_rel_w, mode, axes, axes0, a1_w, a2_w, a2_c, n12)
     if sys.jnt_has_slides:
-        rot0 = spatial.quat_to_mat(quat0)
-        lin_proj = spatial.mm(rot0, const(sys.jnt_lin_proj, 1, 2), spatial.transpose(rot0))
+        q_slide, qd_slide, slide_axes = _slide_coordinates(sys, sel, parent, child, rot0, delta, r_parent, r_child)
+    else:
+        q_slide = qd_slide = torch.zeros_like(delta)
+        slide_axes = torch.zeros_like(hinge_axes)
+    # slot values come out component-major (3, J, B); the slots of a joint go along axis -2
+    return JointFrames(
+        torch.cat((q_slide, q_hinge)).movedim(0, -2), torch.cat((qd_slide, qd_hinge)).movedim(0, -2),
+        torch.cat((slide_axes, hinge_axes), -2), r_parent, r_child, *constraint,
+        quat_rel, spatial.quat_rotate_inv(child.quat, ang_rel_w), hinge_dual,
+    )
+
+
+class _Constraint(NamedTuple):
+    lin_err: torch.Tensor
+    lin_proj: torch.Tensor
+    ang_err: torch.Tensor
+    ang_proj: torch.Tensor
+
+
+def _constraint_errors(sys, sel, child: _Ends, quat0, rot0, delta, mode, axes, a1_w, a2_c, n12) -> _Constraint:
+    """The anchor offset along the constrained directions, and the rotation out of the hinge axes (the
+    :class:`JointFrames` fields of those names)."""
+    weld, one, two, _, _ = sys.jnt_kinds
+    eye = spatial.eye3(delta, 2)
+    if sys.jnt_has_slides:
+        lin_proj = spatial.mm(rot0, lanes.param(sel(sys.jnt_lin_proj), 1, 2), spatial.transpose(rot0))
         lin_err = spatial.matvec(lin_proj, delta)
     else:
         lin_proj, lin_err = eye.expand((3,) + delta.shape), delta
-    a2_c = spatial.matvec(rot_c, a2) if two else None  # a2 turning with the child, world
-    ang_err, ang_proj = zero3, torch.zeros_like(lin_proj)
+    ang_err, ang_proj = torch.zeros_like(delta), torch.zeros_like(lin_proj)
     if weld:
-        ang_err = ang_err + mode[:, 0] * spatial.quat_to_rot_vec(spatial.quat_mul(qc, spatial.quat_conj(quat0)))
+        ang_err = ang_err + mode[:, 0] * spatial.quat_to_rot_vec(spatial.quat_mul(child.quat, spatial.quat_conj(quat0)))
         ang_proj = ang_proj + mode[:, 0] * eye
     if one:
-        ang_err = ang_err + mode[:, 1] * spatial.cross(a1_w, spatial.matvec(rot_c, a1))
+        ang_err = ang_err + mode[:, 1] * spatial.cross(a1_w, spatial.matvec(child.rot, axes[:, :, 0]))
         ang_proj = ang_proj + mode[:, 1] * (eye - spatial.outer(a1_w, a1_w))
-    n12 = spatial.normalize(spatial.cross(a1_w, a2_c)) if two else zero3
     if two:
         tilt = torch.asin(torch.clamp(spatial.dot(a1_w, a2_c), -1.0, 1.0))
         ang_err = ang_err - mode[:, 2] * tilt * n12
         ang_proj = ang_proj + mode[:, 2] * spatial.outer(n12, n12)
-    if not coordinates:
-        return JointFrames(None, None, None, r_parent, r_child, lin_err, lin_proj, ang_err, ang_proj,
-                           None, None, None)
+    return _Constraint(lin_err, lin_proj, ang_err, ang_proj)
 
-    # hinge coordinates: decompose the relative rotation about the joint's axes (a1 parent-fixed, last child-fixed)
-    quat_rel = spatial.quat_mul(spatial.quat_conj(quat0), qc)
-    ang_rel_w = wc - wp
+
+def _hinge_coordinates(sys, sel, child: _Ends, quat_rel, ang_rel_w, mode, axes, axes0, a1_w, a2_w, a2_c, n12):
+    """The hinge slots' coordinates and rates ``(3, J, B)``, world axes ``(3, J, 3, B)`` and ``hinge_dual``: the
+    relative rotation decomposed about the joint's axes (a1 parent-fixed, the last child-fixed)."""
+    _, _, two, three, _ = sys.jnt_kinds
+    a1, a2, a3 = axes.unbind(-2)
+    zero3 = torch.zeros_like(a1_w)
     # the turn about a1 taking the zero frame's a2 (a perpendicular of a1) to the child's, measured in the world
-    a2_c = spatial.matvec(rot_c, a2) if a2_c is None else a2_c
     q1 = (mode[:, 1] + mode[:, 2]) * spatial.angle_about(a1_w, a2_w, a2_c)
     q2 = q3 = torch.zeros_like(q1)
     if two or three:  # slots: the zero frame's a1..a3, except where 2 or 3 hinges turn the later axes
@@ -159,17 +196,17 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
         col2 = (1 - mode[:, 2] - mode[:, 3]) * axes0[:, :, 1] + mode[:, 2] * a2_c
         col3 = (1 - mode[:, 2] - mode[:, 3]) * axes0[:, :, 2] + mode[:, 2] * n12
     if three:
-        handed = const(sys.jnt_a2_sign, 1, 0)
+        handed = lanes.param(sel(sys.jnt_a2_sign), 1, 0)
         r_a3 = spatial.quat_rotate(quat_rel, a3)
         mid = torch.asin(torch.clamp(handed * spatial.dot(a1, r_a3), -1.0, 1.0))
         m3 = mode[:, 3]
         q1 = q1 + m3 * spatial.angle_about(a1, _rotate_about(a2, a3, mid), r_a3)
         q2 = q2 + m3 * mid
         q3 = m3 * -spatial.angle_about(a3, _rotate_about(a2, a1, -mid), rt_a1)
-        a3_c = spatial.matvec(rot_c, a3)
+        a3_c = spatial.matvec(child.rot, a3)
         col2 = col2 + m3 * handed * spatial.normalize(spatial.cross(a3_c, a1_w))
         col3 = col3 + m3 * a3_c
-    if dof_slots_only:  # slot a1 alone, the others zero: a unit axis is its own dual
+    if axes0 is None:  # slot a1 alone, the others zero: a unit axis is its own dual
         hinge_axes = torch.stack((a1_w, zero3, zero3), -2)
         hinge_dual = hinge_axes.movedim(-2, 0)
         qd_hinge = torch.stack((spatial.dot(a1_w, ang_rel_w), q2, q3))
@@ -181,28 +218,20 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
             hinge_axes = axes0
             hinge_dual = hinge_axes.movedim(-2, 0)
         qd_hinge = spatial.matvec(hinge_dual, ang_rel_w)
+    return torch.stack((q1, q2, q3)), qd_hinge, hinge_axes, hinge_dual
 
-    # slides: the anchor offset in the zero frame, mapped onto the slide axes
-    if sys.jnt_has_slides:
-        slide_pinv = const(sys.jnt_slide_pinv, 1, 2)
-        rot0_t = spatial.transpose(rot0)
-        d_zero = spatial.matvec(rot0_t, delta)
-        dd_zero = spatial.matvec(
-            rot0_t, (vc + spatial.cross(wc, r_child)) - (vp + spatial.cross(wp, r_parent)) - spatial.cross(wp, delta))
-        q_slide = spatial.matvec(slide_pinv, d_zero)
-        qd_slide = spatial.matvec(slide_pinv, dd_zero)
-        slide_axes = spatial.matvec(rot0.unsqueeze(-2), const(sys.jnt_slide_axes, 2, 1))
-    else:
-        q_slide = qd_slide = zero3
-        slide_axes = torch.zeros_like(hinge_axes)
-    # slot values come out component-major (3, J, B); the slots of a joint go along axis -2
-    return JointFrames(
-        q=torch.cat((q_slide, torch.stack((q1, q2, q3)))).movedim(0, -2),
-        qd=torch.cat((qd_slide, qd_hinge)).movedim(0, -2),
-        axes=torch.cat((slide_axes, hinge_axes), -2),
-        r_parent=r_parent, r_child=r_child, lin_err=lin_err, lin_proj=lin_proj, ang_err=ang_err, ang_proj=ang_proj,
-        quat_rel=quat_rel, ang_rel=spatial.quat_rotate_inv(qc, ang_rel_w), hinge_dual=hinge_dual,
-    )
+
+def _slide_coordinates(sys, sel, parent: _Ends, child: _Ends, rot0, delta, r_parent, r_child):
+    """The slide slots' coordinates and rates ``(3, J, B)`` and world axes ``(3, J, 3, B)``: the anchor offset in
+    the zero frame, mapped onto the slide axes."""
+    slide_pinv = lanes.param(sel(sys.jnt_slide_pinv), 1, 2)
+    rot0_t = spatial.transpose(rot0)
+    d_zero = spatial.matvec(rot0_t, delta)
+    v_child = child.vel + spatial.cross(child.ang, r_child)
+    v_parent = parent.vel + spatial.cross(parent.ang, r_parent)
+    dd_zero = spatial.matvec(rot0_t, v_child - v_parent - spatial.cross(parent.ang, delta))
+    slide_axes = spatial.matvec(rot0.unsqueeze(-2), lanes.param(sel(sys.jnt_slide_axes), 2, 1))
+    return spatial.matvec(slide_pinv, d_zero), spatial.matvec(slide_pinv, dd_zero), slide_axes
 
 
 def anchor_gap(sys: System, state) -> torch.Tensor:

@@ -68,6 +68,10 @@ class Stepper:
         part_size, threads: ``loop`` and ``calls`` on CPU: batches stepped in parts of at most ``part_size`` envs
             (0: whole) on ``threads`` threads (default ``torch.get_num_threads()``).
         inductor_options: extra options for inductor (e.g. ``{"cpp.simdlen": 256}`` for AVX2 code).
+        backend: ``"inductor"`` (generated C++: the speed), or another ``torch.compile`` backend (``"aot_eager"``)
+            that runs the same graphs op by op without generating code: the strategy's graphs, substep loop and
+            parts at eager speed, in seconds instead of minutes; for telling an engine error from a code
+            generator's, and for checking every model's strategies.
 
     Each strategy compiles on its first step: a ``rows`` stepper then builds its row graph (minutes the first time;
     later from the on-disk cache, ``torchsim.row_cache``), and if the row graph cannot express the substep, the
@@ -75,7 +79,7 @@ class Stepper:
     """
 
     def __init__(self, sys: System, strategy: str = "auto", *, part_size: int = 512, threads: int | None = None,
-                 inductor_options: dict | None = None, _shared: dict | None = None):
+                 inductor_options: dict | None = None, backend: str = "inductor", _shared: dict | None = None):
         self.sys, self.requested = sys, strategy
         self.strategy = choose_strategy(sys) if strategy == "auto" else strategy
         reason = _unsupported(sys, self.strategy)
@@ -84,6 +88,7 @@ class Stepper:
         self.part_size = part_size
         self.threads = torch.get_num_threads() if threads is None else threads
         self.inductor_options = dict(inductor_options or {})
+        self.backend = backend
         # compiled functions and part settings, shared with the steppers ``for_system`` makes
         self._shared = {} if _shared is None else _shared
         self._row_graphs: dict[tuple, object] = {}
@@ -91,7 +96,8 @@ class Stepper:
         self.parts = self._parts()
 
     def __repr__(self) -> str:
-        return f"Stepper({self.sys.method}, {self.strategy!r}, {self.sys.device}, {self.sys.dtype})"
+        backend = "" if self.backend == "inductor" else f", backend={self.backend!r}"
+        return f"Stepper({self.sys.method}, {self.strategy!r}, {self.sys.device}, {self.sys.dtype}{backend})"
 
     @property
     def num_row_graphs(self) -> int:
@@ -105,7 +111,7 @@ class Stepper:
         if sys is self.sys:
             return self
         return Stepper(sys, self.requested, part_size=self.part_size, threads=self.threads,
-                       inductor_options=self.inductor_options, _shared=self._shared)
+                       inductor_options=self.inductor_options, backend=self.backend, _shared=self._shared)
 
     def __call__(self, state: State, ctrl: torch.Tensor) -> State:
         sys = self.sys
@@ -147,9 +153,10 @@ class Stepper:
         """``torch.compile(fn)`` once per name and options, shared with the steppers ``for_system`` made;
         ``threaded``: its kernels run inside parts on threads (else the whole batch on every intra-op thread)."""
         options = self._options(threaded and self.parts.workers > 1)
-        key = (name, tuple(sorted(options.items())))
+        key = (name, self.backend, tuple(sorted(options.items())))
         if key not in self._shared:
-            self._shared[key] = torch.compile(fn, fullgraph=True, dynamic=False, options=options)
+            how = dict(options=options) if self.backend == "inductor" else dict(backend=self.backend)
+            self._shared[key] = torch.compile(fn, fullgraph=True, dynamic=False, **how)
         return self._shared[key]
 
     def _compiled_loop(self):
@@ -207,16 +214,20 @@ class Stepper:
             with self._row_lock:  # steps on several threads: one builds it
                 graph = self._row_graphs.get(key)
                 if graph is None:
-                    # a row graph's ops all fuse into one loop: no cap on the size of a fused kernel; its buffers
-                    # in one pool
-                    options = {"cpp_wrapper": True, "max_fusion_size": 1 << 20, "memory_planning": True}
-                    options |= self.inductor_options
-                    batches = "any batch" if lanes.per_env(args[0]) else "batch 1"
-                    with progress.announce(f"the {sys.method} substep as a row graph ({sys.num_bodies} bodies, "
-                                           f"{batches}, {args[0].dtype})"):
-                        graph = self._row_graphs[key] = rows.compile_row_graph(
-                            substep, args, options, row_cache.content_key(sys, args, options, layout))
+                    graph = self._row_graphs[key] = self._build_row_graph(substep, args, layout)
         return graph
+
+    def _build_row_graph(self, substep, args: list, layout: tuple):
+        sys = self.sys
+        if self.backend != "inductor":  # the row graph itself, its ops run one by one
+            graph = rows.row_graph(lambda *xs: (substep(*xs),), args)
+            return lambda *inputs: graph(*inputs)[0]
+        # a row graph's ops all fuse into one loop: no cap on the size of a fused kernel; its buffers in one pool
+        options = {"cpp_wrapper": True, "max_fusion_size": 1 << 20, "memory_planning": True} | self.inductor_options
+        batches = "any batch" if lanes.per_env(args[0]) else "batch 1"
+        with progress.announce(f"the {sys.method} substep as a row graph ({sys.num_bodies} bodies, {batches}, "
+                               f"{args[0].dtype})"):
+            return rows.compile_row_graph(substep, args, options, row_cache.content_key(sys, args, options, layout))
 
 
 def _step_terms(sys: System, bodies: Bodies, h: float):

@@ -1,0 +1,87 @@
+"""MuJoCo bodies -> torchsim bodies: each body without joints is fused into its parent (its weld root).
+
+Frames here are numpy float64, MuJoCo's ``(pos, quat)`` convention.
+"""
+
+from typing import NamedTuple
+
+import mujoco
+import numpy as np
+import torch
+
+from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
+
+
+class FusedBodies(NamedTuple):
+    """How MuJoCo's bodies map onto torchsim's ``N`` fused bodies.
+
+    Attributes:
+        roots: MuJoCo id of each fused body's weld root, in torchsim body order.
+        index: MuJoCo weld root (or 0, the world) -> torchsim ext body index (the world is ``N``).
+        frame: MuJoCo body -> its ``(pos (3,), quat (4,))`` in its weld root's frame (the world's: identity).
+        com: ``(N, 3)`` each fused body's centre of mass in its root's frame [m].
+    """
+
+    roots: list
+    index: dict
+    frame: dict
+    com: np.ndarray
+
+    def body_of(self, m: mujoco.MjModel, mj_body: int) -> int:
+        """The torchsim ext body index that MuJoCo body ``mj_body`` is fused into."""
+        return self.index[m.body_weldid[mj_body]]
+
+    def com_of(self, m: mujoco.MjModel, mj_body: int) -> np.ndarray:
+        """The COM of the fused body holding ``mj_body`` in its root's frame (the world's origin for the world)."""
+        weld = m.body_weldid[mj_body]
+        return self.com[self.index[weld]] if weld else np.zeros(3)
+
+
+def compose(pos_a, quat_a, pos_b, quat_b):
+    """Frame b given in frame a -> frame b in a's parent."""
+    quat = np.zeros(4)
+    mujoco.mju_mulQuat(quat, quat_a, quat_b)
+    return pos_a + quat_mat(quat_a) @ pos_b, quat
+
+
+def quat_mat(q) -> np.ndarray:
+    rot = np.zeros(9)
+    mujoco.mju_quat2Mat(rot, q)
+    return rot.reshape(3, 3)
+
+
+def fuse_bodies(m: mujoco.MjModel) -> tuple[FusedBodies, dict]:
+    """Fuse each jointless body into its weld root, combining mass, COM and inertia in the root's frame: the
+    mapping, and the System's body fields."""
+    identity = (np.zeros(3), np.array([1.0, 0, 0, 0]))
+    frame = {0: identity}
+    for b in range(1, m.nbody):
+        frame[b] = identity if m.body_weldid[b] == b else compose(*frame[m.body_parentid[b]], m.body_pos[b],
+                                                                  m.body_quat[b])
+    roots = [b for b in range(1, m.nbody) if m.body_weldid[b] == b]
+    index = {0: len(roots)} | {b: i for i, b in enumerate(roots)}
+    mass, com, inertia = np.zeros(len(roots)), np.zeros((len(roots), 3)), np.zeros((len(roots), 3, 3))
+    for i, r in enumerate(roots):
+        members = [b for b in range(1, m.nbody) if m.body_weldid[b] == r]
+        coms, tensors = [], []
+        for b in members:
+            rot = quat_mat(compose(*frame[b], np.zeros(3), m.body_iquat[b])[1])
+            coms.append(frame[b][0] + quat_mat(frame[b][1]) @ m.body_ipos[b])
+            tensors.append(rot @ np.diag(m.body_inertia[b]) @ rot.T)
+        masses = m.body_mass[members]
+        mass[i] = masses.sum()
+        if mass[i] <= 0:
+            raise UnsupportedMJCFError(f"body {name(m, mujoco.mjtObj.mjOBJ_BODY, r)!r} has no mass")
+        com[i] = (masses[:, None] * np.array(coms)).sum(0) / mass[i]
+        for mb, c, t in zip(masses, coms, tensors):  # parallel-axis theorem about the fused COM
+            d = c - com[i]
+            inertia[i] += t + mb * (d @ d * np.eye(3) - np.outer(d, d))
+    fused = FusedBodies(roots, index, frame, com)
+    mj_pos = np.array([frame[b][0] - fused.com_of(m, b) for b in range(m.nbody)])
+    return fused, dict(
+        body_mass=torch.as_tensor(mass), body_inertia=torch.as_tensor(inertia), body_ipos=torch.as_tensor(com),
+        body_parent=torch.as_tensor([fused.body_of(m, m.body_parentid[r]) for r in roots], dtype=torch.long),
+        body_names=tuple(name(m, mujoco.mjtObj.mjOBJ_BODY, r) for r in roots),
+        mjbody_body=torch.as_tensor([fused.body_of(m, b) for b in range(m.nbody)], dtype=torch.long),
+        mjbody_pos=torch.as_tensor(mj_pos), mjbody_quat=torch.as_tensor(np.array([frame[b][1] for b in range(m.nbody)])),
+    )

@@ -1,0 +1,33 @@
+"""The MJCF subset torchsim loads, and the error that names what falls outside it."""
+
+import warnings
+
+import mujoco
+import numpy as np
+
+
+class UnsupportedMJCFError(ValueError):
+    """The model uses an MJCF feature outside torchsim's supported subset (see ``torchsim.io_mjcf``)."""
+
+
+def check_supported(m: mujoco.MjModel) -> None:
+    """Raise for model-wide elements torchsim cannot simulate; warn for those it ignores harmlessly. Per-body,
+    per-actuator and per-geom limits are checked where those are converted."""
+    unsupported = {
+        "tendon": m.ntendon, "equality": m.neq, "flexcomp/flex": m.nflex, "skin": m.nskin,
+        "mocap body": m.nmocap, "hfield": m.nhfield,
+    }
+    for element, count in unsupported.items():
+        if count:
+            raise UnsupportedMJCFError(
+                f"<{element}> is not supported by torchsim ({count} found); see torchsim.io_mjcf for the supported subset"
+            )
+    if m.njnt and np.any(m.dof_frictionloss != 0):
+        raise UnsupportedMJCFError("joint frictionloss is not supported; remove it or set it to 0")
+    if m.nsensor:
+        warnings.warn(f"{m.nsensor} <sensor> elements are ignored by torchsim", stacklevel=3)
+
+
+def name(m: mujoco.MjModel, obj, i: int) -> str:
+    """The MJCF name of object ``i`` of type ``obj`` (``mujoco.mjtObj``), or ``#i`` for an unnamed one."""
+    return mujoco.mj_id2name(m, obj, i) or f"#{i}"
