@@ -156,7 +156,9 @@ class Stepper:
         key = (name, self.backend, tuple(sorted(options.items())))
         if key not in self._shared:
             how = dict(options=options) if self.backend == "inductor" else dict(backend=self.backend)
-            self._shared[key] = torch.compile(fn, fullgraph=True, dynamic=False, **how)
+            # isolated: other steppers' compiled entries for fn (other models, batch sizes) do not count against
+            # this one's recompile limit, which fullgraph=True makes a hard error
+            self._shared[key] = torch.compile(fn, fullgraph=True, dynamic=False, isolate_recompiles=True, **how)
         return self._shared[key]
 
     def _compiled_loop(self):
