@@ -6,7 +6,7 @@ the row graph that serves every batch, its batch of one its own).
 In float64, against the reference's own rounding: a strategy evaluates the step with other formulas for a few
 primitives (the per-component forms that ``torch.compile`` and row graphs trace, ``torchsim.spatial``) and the row
 graph also reorders sums and folds constants. Where large spring forces nearly cancel, float64 rounding is amplified:
-in one Pusher start, cross products of ~1e13 N forces differ by 2^-11 between the two formulas, which moves the
+in one Pusher start, cross products of terms of size ~1e12 differ by 2^-11 between the two formulas, which moves the
 next state by 1e-3. So each case first measures the reference's own spread (``torchsim.step`` with its eager
 formulas against ``torchsim.step`` with the per-component ones, same starts and controls) and bounds the strategy's
 difference from the reference by 10x that spread, and at least 1e-8 (the spread is 1e-18 to 2e-10 in the calm
