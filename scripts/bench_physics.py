@@ -53,7 +53,7 @@ def parse_args(argv=None):
     p.add_argument("--compile-scope", choices=["step", "stepper"], default="stepper",
                    help="'stepper' (default): torchsim.Stepper(sys, --strategy), the engine's compiled step; "
                         "'step': torch.compile(torchsim.step) as a whole (loop nests; slower on CPU)")
-    p.add_argument("--strategy", default="auto", help="torchsim.Stepper strategy: auto, rows, loop or calls")
+    p.add_argument("--strategy", default="auto", help="torchsim.Stepper strategy: auto, kernel, rows, loop or calls")
     p.add_argument("--simdlen", type=int, default=None,
                    help="inductor's cpp.simdlen: 256 makes AVX2 code on an AVX-512 machine, 1 scalar code "
                         "(default: the machine's widest)")

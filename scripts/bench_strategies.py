@@ -1,7 +1,7 @@
 """Each ``torchsim.Stepper`` strategy against MuJoCo C, per model and batch: the measurements behind
 ``torchsim.stepper.choose_strategy`` (``docs/physics.md``, "How a step runs").
 
-    python scripts/bench_strategies.py                                  # ant, humanoid, halfcheetah; 64/1024/4096
+    python scripts/bench_strategies.py                                  # ant, humanoid, halfcheetah; 1/64/1024/4096
     python scripts/bench_strategies.py --models ant --simdlen 256       # AVX2 code on an AVX-512 machine
     python scripts/bench_strategies.py --models ant --batches 1 64 --strategies rows loop eager
 
@@ -28,9 +28,10 @@ from _timing import emit_table, median_rate, mujoco_rollout_rate, mujoco_start_s
 def parse_args():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", nargs="+", default=["ant", "humanoid", "halfcheetah"], help="env names")
-    p.add_argument("--batches", nargs="+", type=int, default=[64, 1024, 4096])
-    p.add_argument("--strategies", nargs="+", default=["rows", "loop"])
-    p.add_argument("--simdlen", type=int, default=None, help="inductor cpp.simdlen (256: AVX2 code)")
+    p.add_argument("--batches", nargs="+", type=int, default=[1, 64, 1024, 4096])
+    p.add_argument("--strategies", nargs="+", default=["kernel", "rows", "loop"])
+    p.add_argument("--simdlen", type=int, default=None, help="inductor cpp.simdlen (256: AVX2 code); for the "
+                   "kernel strategy set ATEN_CPU_CAPABILITY=avx2 instead")
     p.add_argument("--repeats", type=int, default=5)
     p.add_argument("--min-seconds", type=float, default=0.5, help="per repeat")
     p.add_argument("--out", default=None)

@@ -46,7 +46,7 @@ from torchsim import rigid
 from torchsim.envs import ENVS, make
 from torchsim.kinematics import anchor_gap, dof_values, joint_frames, with_world
 from torchsim.lanes import from_lanes
-from torchsim.pipeline import contain_divergence
+from torchsim.pipeline import contain_divergence, to_lanes_state
 
 DOCS = Path(__file__).resolve().parent.parent / "docs"
 LINKS = 4
@@ -163,7 +163,8 @@ def run_cells(sys: torchsim.System, state: torchsim.State, seconds: float) -> di
     ctrl = torch.zeros(batch, sys.nu)
     for _ in range(round(seconds / sys.timestep)):
         state = torchsim.step(sys, state, ctrl)
-        flagged |= contain_divergence(flag_sys, state, state).diverged
+        lanes_state = to_lanes_state(state)
+        flagged |= contain_divergence(flag_sys, lanes_state, lanes_state).diverged
         growth = torch.maximum(growth, (mechanical_energy(sys, state) - start) / (start - rest))
         gap = torch.maximum(gap, anchor_gap(sys, state))
         speed = torch.maximum(speed, torch.maximum(state.xd_vel.abs().amax((1, 2)), state.xd_ang.abs().amax((1, 2))))

@@ -2,9 +2,9 @@
 
 Compiling takes minutes per graph on 2 cores, so this file traces one small model (a hinged arm that hits the
 floor, and a falling box; 2 substeps) with dynamo for both methods (one graph, no breaks) and compiles it with
-inductor for the default method only, checking 20 steps against eager mode in float32; then twice more as
-``torchsim.Stepper`` runs it: as a row graph (the default for spring on CPU), and in parts on two threads. Two
-steppers of different strategies step side by side in one process.
+inductor for the default method only, checking 20 steps against eager mode in float32; then three times more as
+``torchsim.Stepper`` runs it: as a generated C++ step (the default for spring on CPU), as a row graph, and in parts
+on two threads. Steppers of different strategies step side by side in one process.
 """
 
 import pytest
@@ -81,32 +81,39 @@ def _worst_vs_eager(sys, compiled, ctrl):
     return max((a - b).abs().max().item() for e, c in zip(eager, compiled) for a, b in zip(e[:6], c[:6]))
 
 
-def test_row_graph_and_fallback_steppers_match_eager_side_by_side(tmp_path, monkeypatch, method="spring"):
-    """Two steppers of one System in one process, stepped in turn. One runs ``rows`` (the default on CPU: the
-    step's terms and end compiled by dynamo, two graphs; the substep a row graph compiled by inductor alone, built
-    once). The other is asked for the default too, but its row graph cannot express the substep (the interpreter
-    is made to lack ``torch.cat``): it falls back to ``loop`` with one warning (the step one compiled graph, its
-    substeps a loop; the batch cut into 4 parts of 2 that two threads step at once, joined). Each gives the eager
-    step's numbers."""
-    monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))  # a row graph stored by an earlier run would load
+def test_kernel_rows_and_fallback_steppers_match_eager_side_by_side(tmp_path, monkeypatch, method="spring"):
+    """Three steppers of one System in one process, stepped in turn. One runs ``kernel`` (the default on CPU: the
+    whole step one generated C++ function, built once). One runs ``rows`` (the step's terms and end compiled by
+    dynamo, two graphs; the substep a row graph compiled by inductor alone, built once). The third is asked for
+    the default too, but the row interpreter is made to lack ``torch.cat``, so neither the kernel nor a row graph
+    can express the step: it falls back twice, with a warning each time, to ``loop`` (the step one compiled graph,
+    its substeps a loop; the batch cut into 4 parts of 2 that two threads step at once, joined). Each gives the
+    eager step's numbers."""
+    monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))  # a kernel or row graph stored by an earlier run would load
     torch.compiler.reset()
     sys, state, ctrl = _setup(method)
     looped = torchsim.Stepper(sys, part_size=2, threads=2)
     with monkeypatch.context() as patch:
         patch.delattr(rows_module._RowInterpreter, "_op_cat_default")
-        with pytest.warns(UserWarning, match=r"cannot run as a row graph \(row graphs do not support aten.cat"):
+        with pytest.warns(UserWarning) as warned:
             looped_states, _ = _compiled_steps(looped, state, ctrl, steps=1)
-    rows = torchsim.Stepper(sys)
+    messages = [str(w.message) for w in warned if "cannot run as the" in str(w.message)]
+    assert [m.split(" strategy (")[0].split()[-1] for m in messages] == ["kernel", "rows"], messages
+    assert all("row graphs do not support aten.cat" in m for m in messages)
+    kernel, rows = torchsim.Stepper(sys), torchsim.Stepper(sys, "rows")
+    kernel_states, _ = _compiled_steps(kernel, state, ctrl, steps=1)
     rows_states, _ = _compiled_steps(rows, state, ctrl, steps=1)
-    assert (rows.strategy, looped.strategy) == ("rows", "loop") and looped.parts.sizes(state) == [2, 2, 2, 2]
-    graphs = {"rows": 0, "loop": 0}
-    for _ in range(4):  # alternating: neither stepper's compiled code disturbs the other's, nothing recompiles
-        for name, stepper, states in (("rows", rows, rows_states), ("loop", looped, looped_states)):
+    assert (kernel.strategy, rows.strategy, looped.strategy) == ("kernel", "rows", "loop")
+    assert looped.parts.sizes(state) == [2, 2, 2, 2]
+    steppers = {"kernel": (kernel, kernel_states), "rows": (rows, rows_states), "loop": (looped, looped_states)}
+    graphs = dict.fromkeys(steppers, 0)
+    for _ in range(4):  # alternating: neither stepper's compiled code disturbs the others', nothing recompiles
+        for name, (stepper, states) in steppers.items():
             more, new_graphs = _compiled_steps(stepper, states[-1], ctrl, steps=1)
             states.append(more[-1])
             graphs[name] += new_graphs
-    assert graphs == {"rows": 0, "loop": 0} and rows.num_row_graphs == 1
-    for name, states in (("rows", rows_states), ("loop", looped_states)):
+    assert graphs == dict.fromkeys(steppers, 0) and rows.num_row_graphs == 1 and kernel.num_row_graphs == 1
+    for name, (_, states) in steppers.items():
         worst = _worst_vs_eager(sys, states, ctrl)
         print(f"{method}: max |eager - {name} stepper| over {len(states) - 1} steps {worst:.2e}")
         assert worst < 1e-4  # float32 rounding, grown over 5 steps (one step: 1e-5, test above)
@@ -129,12 +136,12 @@ def test_steps_recording_gradients_run_eagerly(method="spring"):
 
 
 def test_strategy_selection():
-    """``auto`` picks row graphs for spring on CPU, the compiled loop once parameters are per env, and compiled calls
-    for xpbd; a strategy that cannot run the System is refused with the reason (nothing compiles here)."""
+    """``auto`` picks the C++ step kernel for spring on CPU, the compiled loop once parameters are per env, and
+    compiled calls for xpbd; a strategy that cannot run the System is refused with the reason (nothing compiles here)."""
     spring = torchsim.load_mjcf(MODEL, method="spring", substeps=2)
     batched = spring.replace(body_mass=spring.body_mass.expand(3, -1))
     xpbd = torchsim.load_mjcf(MODEL, method="xpbd", substeps=2)
-    assert [stepper_module.choose_strategy(s) for s in (spring, batched, xpbd)] == ["rows", "loop", "calls"]
+    assert [stepper_module.choose_strategy(s) for s in (spring, batched, xpbd)] == ["kernel", "loop", "calls"]
     assert torchsim.Stepper(xpbd).strategy == "calls" and torchsim.Stepper(spring, "eager").strategy == "eager"
     with pytest.raises(ValueError, match="xpbd method supports"):
         torchsim.Stepper(xpbd, "loop")

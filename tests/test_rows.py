@@ -105,10 +105,11 @@ def test_row_graphs_refuse_the_batch_axis():
 
 
 def test_batched_systems_keep_the_loop():
-    """Per-env parameters cannot be baked into a graph: such Systems take the compiled loop, not a row graph, and
-    asking for a row graph names why it cannot be."""
+    """Per-env parameters cannot be baked into a graph: such Systems take the compiled loop, not the C++ step or a
+    row graph, and asking for either names why it cannot be."""
     sys = torchsim.load_mjcf(str(ANT))
     batched = sys.replace(body_mass=sys.body_mass.expand(4, -1))
-    assert stepper.choose_strategy(sys) == "rows" and stepper.choose_strategy(batched) == "loop"
-    with pytest.raises(ValueError, match="parameters shared by every env"):
-        torchsim.Stepper(batched, "rows")
+    assert stepper.choose_strategy(sys) == "kernel" and stepper.choose_strategy(batched) == "loop"
+    for strategy in ("kernel", "rows"):
+        with pytest.raises(ValueError, match="parameters shared by every env"):
+            torchsim.Stepper(batched, strategy)

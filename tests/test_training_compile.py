@@ -1,5 +1,5 @@
 """The compiled engine as training uses it (issue 25): evaluation reuses the training batch's compiled step, a second
-process loads the compiled row graph from the on-disk cache, the compiled env step equals the eager one with
+process loads the compiled step (the C++ step kernel, and a row graph with inductor's code) from the on-disk cache, the compiled env step equals the eager one with
 per-env physics parameters, and ``torch.compile(torchsim.step)`` warns that it is not the fast path.
 
 Compiling costs tens of seconds even for the small models used here, so each test compiles one thing once.
@@ -23,9 +23,9 @@ from torchsim.algos.train import run
 
 
 def test_evaluation_reuses_the_training_graph(tmp_path, caplog):
-    """PPO with ``compile=true``: the training env compiles the step (its terms, its row-graph substep, its end) once,
-    for any batch size; the evaluation env, with another batch size and the training env's System, compiles nothing
-    more, though it is evaluated at the first and the last iteration."""
+    """PPO with ``compile=true``: the training env builds the step (one C++ step kernel, for any batch size) once;
+    the evaluation env, with another batch size and the training env's System, builds nothing more, though it is
+    evaluated at the first and the last iteration; dynamo compiles nothing of the physics."""
     cfg = config("algo=ppo", "env=inverted_pendulum", "algo.num_envs=8", "algo.unroll=2", "algo.minibatches=2",
                  "budget.env_steps=32", "eval.max_steps=5", "eval.episodes=3", "eval.at_start=true", *QUIET,
                  "compile=true")
@@ -34,12 +34,11 @@ def test_evaluation_reuses_the_training_graph(tmp_path, caplog):
     assert len(trained.history["eval"]) == 2
     assert (trained.eval_env.batch_size, trained.train_env.batch_size) == ((3,), (8,))
     assert trained.eval_env.base_env.stepper is trained.train_env.base_env.stepper
-    assert trained.train_env.base_env.stepper.strategy == "rows"
-    started = [r.getMessage() for r in caplog.records if r.getMessage().startswith("compiling ")]
-    physics = [m for m in started if "row graph" in m or "_step_terms" in m or "finish" in m]
-    assert len([m for m in physics if "row graph" in m]) == 1, started
-    assert len([m for m in physics if "_step_terms" in m]) == 1, started
-    assert len([m for m in physics if "finish" in m]) == 1, started
+    assert trained.train_env.base_env.stepper.strategy == "kernel"
+    built = [r.getMessage() for r in caplog.records if r.getMessage().startswith(("compiling ", "loaded "))]
+    assert len([m for m in built if "spring step" in m and "tracing its row graphs" in m]) == 1, built
+    assert len([m for m in built if "spring step" in m and "as C++" in m]) == 1, built
+    assert not [m for m in built if "as a row graph" in m or "_step_terms" in m or "finish" in m], built
 
 
 CACHE_PROBE = textwrap.dedent("""
@@ -47,29 +46,37 @@ CACHE_PROBE = textwrap.dedent("""
     from torch._dynamo.utils import counters
     logging.basicConfig(level=logging.INFO, format="%(message)s", stream=sys.stderr)
     sys_ = torchsim.load_mjcf(str(torchsim.envs.asset_path("inverted_pendulum.xml")))
-    stepper = torchsim.Stepper(sys_)
+    stepper = torchsim.Stepper(sys_, sys.argv[1])
     state = torchsim.init(sys_, sys_.q0.expand(8, -1).clone(), torch.zeros(8, sys_.nv))
     state = stepper(state, torch.zeros(8, sys_.nu))
     print(json.dumps({"q": state.q.tolist(), "inductor": dict(counters["inductor"])}))
 """)
 
 
-def test_second_process_loads_the_compiled_step_from_disk(tmp_path):
-    """Two processes compile the same step with empty caches in ``tmp_path``: the first builds the row graph and
-    stores it (``TORCHSIM_CACHE_DIR``) with inductor's code (``TORCHINDUCTOR_CACHE_DIR``); the second loads the
-    graph and hits inductor's cache for every graph, building and compiling nothing, with the same result."""
+@pytest.mark.parametrize("strategy", ["kernel", "rows"])
+def test_second_process_loads_the_compiled_step_from_disk(tmp_path, strategy):
+    """Two processes build the same step with empty caches in ``tmp_path``; the second loads what the first stored,
+    builds and compiles nothing, and gives the same result. ``kernel``: the C++ library (``TORCHSIM_CACHE_DIR``),
+    found without tracing the step. ``rows``: the row graph (``TORCHSIM_CACHE_DIR``) with inductor's code
+    (``TORCHINDUCTOR_CACHE_DIR``), a hit for every graph."""
     env = {**os.environ, "TORCHSIM_CACHE_DIR": str(tmp_path / "torchsim"),
            "TORCHINDUCTOR_CACHE_DIR": str(tmp_path / "inductor")}
-    runs = [subprocess.run([sys.executable, "-c", CACHE_PROBE], env=env, capture_output=True, text=True, timeout=600)
-            for _ in range(2)]
+    runs = [subprocess.run([sys.executable, "-c", CACHE_PROBE, strategy], env=env, capture_output=True, text=True,
+                           timeout=600) for _ in range(2)]
     for proc in runs:
         assert proc.returncode == 0, proc.stderr[-3000:]
     first, second = (json.loads(proc.stdout.strip().splitlines()[-1]) for proc in runs)
-    assert "loaded the row graph" not in runs[0].stderr and "loaded the row graph" in runs[1].stderr
-    assert first["inductor"].get("fxgraph_cache_miss", 0) >= 1
-    assert second["inductor"].get("fxgraph_cache_miss", 0) == 0 and second["inductor"]["fxgraph_cache_hit"] >= 3
     assert first["q"] == second["q"]
-    assert list((tmp_path / "torchsim" / "rows").glob("*.pt"))
+    if strategy == "kernel":
+        assert "compiling" in runs[0].stderr and "compiling" not in runs[1].stderr, runs[1].stderr[-3000:]
+        assert "loaded the spring step" in runs[1].stderr
+        assert list((tmp_path / "torchsim" / "cpp").glob("*.so"))
+        assert not second["inductor"]
+    else:
+        assert "loaded the row graph" not in runs[0].stderr and "loaded the row graph" in runs[1].stderr
+        assert first["inductor"].get("fxgraph_cache_miss", 0) >= 1
+        assert second["inductor"].get("fxgraph_cache_miss", 0) == 0 and second["inductor"]["fxgraph_cache_hit"] >= 3
+        assert list((tmp_path / "torchsim" / "rows").glob("*.pt"))
 
 
 def test_compiled_env_step_matches_eager_with_per_env_parameters():

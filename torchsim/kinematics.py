@@ -268,26 +268,26 @@ def _block(x: torch.Tensor, start: torch.Tensor, width: int) -> torch.Tensor:
 
 
 def read_q(sys: System, bodies: Bodies, frames: JointFrames):
-    """Generalized coordinates ``(B, nq)`` and velocities ``(B, nv)`` in MuJoCo's layout (public, batch-first)
-    from lanes ext body states and their :class:`JointFrames`."""
+    """Generalized coordinates ``(nq, B)`` and velocities ``(nv, B)`` in MuJoCo's layout (lanes) from lanes ext
+    body states and their :class:`JointFrames`."""
     b = bodies.x_pos.shape[-1]
     x_pos, x_quat, xd_vel, ang = (t.index_select(-2, sys.free_body) for t in bodies)
     com = spatial.quat_rotate(x_quat, lanes.param(sys.body_ipos[sys.free_body], 1, 1))
     lin = xd_vel - spatial.cross(ang, com)
     ball = sys.ball_joint
-    # each part: its addresses and its lanes rows (component-major), written into contiguous batch-first outputs
+    # each part: its addresses and its lanes rows (component-major)
     q_parts = ((sys.dof_qpos, dof_values(sys, frames.q) + lanes.param(sys.dof_ref, 1)),
                (_addresses(sys.free_qpos, 7), torch.cat((x_pos - com, x_quat)).flatten(0, 1)),
                (_addresses(sys.ball_qpos, 4), frames.quat_rel.index_select(-2, ball).flatten(0, 1)))
     qd_parts = ((sys.dof_qvel, dof_values(sys, frames.qd)),
                 (_addresses(sys.free_qvel, 6), torch.cat((lin, spatial.quat_rotate_inv(x_quat, ang))).flatten(0, 1)),
                 (_addresses(sys.ball_qvel, 3), frames.ang_rel.index_select(-2, ball).flatten(0, 1)))
-    q = x_pos.new_zeros(b, sys.nq)
-    qd = x_pos.new_zeros(b, sys.nv)
+    q = x_pos.new_zeros(sys.nq, b)
+    qd = x_pos.new_zeros(sys.nv, b)
     for addresses, rows in q_parts:
-        q = q.index_copy(1, addresses, lanes.from_lanes(rows))
+        q = q.index_copy(0, addresses, rows)
     for addresses, rows in qd_parts:
-        qd = qd.index_copy(1, addresses, lanes.from_lanes(rows))
+        qd = qd.index_copy(0, addresses, rows)
     return q, qd
 
 

@@ -34,17 +34,26 @@ def init(sys: System, q: torch.Tensor, qd: torch.Tensor) -> State:
     check(sys, "qd", qd, sys.nv, q.shape[0])
     bodies = with_world(*forward(sys, q, qd))
     q, qd = read_q(sys, bodies, joint_frames(sys, bodies))
-    return State(*public_poses(sys, bodies), q, qd, torch.zeros(q.shape[0], dtype=torch.bool, device=q.device))
+    n = sys.num_bodies
+    return to_public(State(*(x[..., :n, :] for x in bodies), q, qd,
+                           torch.zeros(q.shape[-1], dtype=torch.bool, device=q.device)))
 
 
-def public_poses(sys: System, bodies: Bodies) -> list[torch.Tensor]:
-    """The moving bodies' poses and velocities, batch-first ``(B, N, 3|4)``, from lanes ``bodies``.
+def to_lanes_state(state: State) -> State:
+    """A public (batch-first) State in the lanes layout: poses ``(3|4, N, B)``, ``q (nq, B)``, ``qd (nv, B)``,
+    ``diverged (B,)`` (views)."""
+    return State(*(lanes.to_lanes(x, 1) for x in state[:4]), lanes.to_lanes(state.q), lanes.to_lanes(state.qd),
+                 state.diverged)
+
+
+def to_public(state: State) -> State:
+    """A lanes State batch-first, the inverse of :func:`to_lanes_state`.
 
     Contiguous, so that ``init``'s and ``step``'s results have the same strides (a batch of 1 included): a compiled
     graph guards on strides and would otherwise compile a second time on the first step's output.
     """
-    n = sys.num_bodies
-    return [lanes.from_lanes(x[..., :n, :], 1).contiguous() for x in bodies]
+    return State(*(lanes.from_lanes(x, 1).contiguous() for x in state[:4]), lanes.from_lanes(state.q).contiguous(),
+                 lanes.from_lanes(state.qd).contiguous(), state.diverged)
 
 
 def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
@@ -105,20 +114,27 @@ def records_grad(sys: System, state: State, ctrl: torch.Tensor) -> bool:
 
 
 def finish(sys: System, old: State, bodies: Bodies) -> State:
-    """The state after a step's substeps: ``q, qd`` read back from the bodies, divergence contained."""
+    """The state after a step's substeps from lanes ``bodies``: :func:`finish_lanes`, batch-first."""
+    return to_public(finish_lanes(sys, to_lanes_state(old), bodies))
+
+
+def finish_lanes(sys: System, old: State, bodies: Bodies) -> State:
+    """The lanes State (:func:`to_lanes_state`) after a step from ``old``'s: the moving bodies of ``bodies``,
+    ``q, qd`` read back from them, divergence contained."""
     q, qd = read_q(sys, bodies, joint_frames(sys, bodies))
-    return contain_divergence(sys, old, State(*public_poses(sys, bodies), q, qd, old.diverged))
+    n = sys.num_bodies
+    return contain_divergence(sys, old, State(*(x[..., :n, :] for x in bodies), q, qd, old.diverged))
 
 
 def contain_divergence(sys: System, old: State, new: State) -> State:
-    """Flag envs whose new state is non-finite or out of bounds, and keep them at their last good state.
+    """Flag envs whose new state (lanes, :func:`to_lanes_state`) is non-finite or out of bounds, and keep them at
+    their last good state.
 
     Envs never mix inside a step, so a diverged env cannot disturb the others; freezing it keeps its numbers
     finite until the caller re-initialises it (e.g. a partial reset).
     """
-    finite = torch.stack([torch.isfinite(t).flatten(1).all(1) for t in new[:6]]).all(0)
-    in_bounds = (new.x_pos.abs().amax((1, 2)) < sys.max_distance) & (
-        torch.maximum(new.xd_vel.abs().amax((1, 2)), new.xd_ang.abs().amax((1, 2))) < sys.max_speed)
+    finite = torch.stack([torch.isfinite(t).flatten(0, -2).all(0) for t in new[:6]]).all(0)
+    in_bounds = (new.x_pos.abs().amax((0, 1)) < sys.max_distance) & (
+        torch.maximum(new.xd_vel.abs().amax((0, 1)), new.xd_ang.abs().amax((0, 1))) < sys.max_speed)
     diverged = old.diverged | ~(finite & in_bounds)
-    fields = [torch.where(diverged.view((-1,) + (1,) * (o.ndim - 1)), o, n) for o, n in zip(old[:6], new[:6])]
-    return State(*fields, diverged)
+    return State(*(torch.where(diverged, o, n) for o, n in zip(old[:6], new[:6])), diverged)

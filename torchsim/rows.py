@@ -326,6 +326,17 @@ class _RowInterpreter(Interpreter):
     def _op_amin_default(self, shape, x, dims, keepdim=False):
         return self._reduce(ELEMENTWISE[aten.minimum.default], x, dims, keepdim)
 
+    def _op_all_dim(self, shape, x, dim, keepdim=False):
+        return self._reduce(_and, x, [dim], keepdim)
+
+    def _op_index_copy_default(self, shape, x, dim, index, source):
+        out = self.cells(x).copy()
+        src = self.cells(source)
+        axis = self._axis(out, dim)
+        for j, i in enumerate(index.tolist()):
+            out[(slice(None),) * axis + (i, Ellipsis)] = src[(slice(None),) * axis + (j, Ellipsis)]
+        return Rows(out)
+
     def _op_index_add_default(self, shape, x, dim, index, source, alpha=1):
         out = self.cells(x).copy()
         src = self.cells(source)

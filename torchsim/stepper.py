@@ -7,6 +7,8 @@
 ``docs/physics.md``, "How a step runs"):
 
 - ``eager``: the reference step itself.
+- ``kernel`` (spring, CPU with AVX2 or AVX-512, parameters shared by every env): the whole step as one generated
+  C++ function (``torchsim.step_kernel``): built in seconds, one call per step at any batch size.
 - ``rows`` (spring, CPU, parameters shared by every env): the substep as a row graph (``torchsim.rows``: every
   small axis unrolled, the model's constants folded in), which inductor compiles into one loop over the batch on
   every intra-op thread; Python calls it ``sys.substeps`` times between the compiled step terms and step end.
@@ -32,14 +34,15 @@ from torchsim.kinematics import Bodies
 from torchsim.methods import METHODS
 from torchsim.parts import Parts
 from torchsim.state import State
+from torchsim.step_kernel import StepKernel, join_poses, split_poses
 from torchsim.system import System
 
-STRATEGIES = ("eager", "rows", "loop", "calls")
+STRATEGIES = ("eager", "kernel", "rows", "loop", "calls")
 
 
 def choose_strategy(sys: System) -> str:
     """The fastest measured strategy for ``sys`` on its device: the first of its method's ``strategies`` that
-    applies (``rows`` only on CPU with parameters shared by every env), else the next one."""
+    applies (``kernel`` and ``rows`` only on CPU with parameters shared by every env), else the next one."""
     for strategy in METHODS[sys.method].strategies:
         if _unsupported(sys, strategy) is None:
             return strategy
@@ -52,10 +55,11 @@ def _unsupported(sys: System, strategy: str) -> str | None:
         return f"unknown strategy {strategy!r}; expected 'auto' or one of {STRATEGIES}"
     if strategy != "eager" and strategy not in METHODS[sys.method].strategies:
         return f"the {sys.method} method supports {('eager',) + METHODS[sys.method].strategies}, not {strategy!r}"
-    if strategy == "rows" and sys.device.type != "cpu":
-        return "row graphs run on CPU only"
-    if strategy == "rows" and sys.batched:
-        return "row graphs bake the System's parameters in, so they need parameters shared by every env"
+    if strategy in ("kernel", "rows") and sys.device.type != "cpu":
+        return f"the {strategy} strategy runs on CPU only"
+    if strategy in ("kernel", "rows") and sys.batched:
+        return (f"the {strategy} strategy bakes the System's parameters in, so it needs parameters shared by every "
+                "env")
     return None
 
 
@@ -73,9 +77,10 @@ class Stepper:
             parts at eager speed, in seconds instead of minutes; for telling an engine error from a code
             generator's, and for checking every model's strategies.
 
-    Each strategy compiles on its first step: a ``rows`` stepper then builds its row graph (minutes the first time;
-    later from the on-disk cache, ``torchsim.row_cache``), and if the row graph cannot express the substep, the
-    stepper falls back to the method's next strategy with one warning instead of failing.
+    Each strategy compiles on its first step: a ``kernel`` stepper then builds its C++ step (seconds), a ``rows``
+    stepper its row graph (minutes); both are kept on disk for later processes (``torchsim.row_cache``). If the
+    step cannot be expressed that way (or the CPU lacks AVX2), the stepper falls back to the method's next strategy
+    with one warning instead of failing.
     """
 
     def __init__(self, sys: System, strategy: str = "auto", *, part_size: int = 512, threads: int | None = None,
@@ -121,10 +126,10 @@ class Stepper:
         if pipeline.records_grad(sys, state, ctrl):
             _warn_eager_for_grad()
             return pipeline.run_substeps(sys, state, ctrl)
-        if self.strategy == "rows":
+        if self.strategy in ("kernel", "rows"):
             try:
-                return self._rows_step(state, ctrl)
-            except rows.Unsupported as err:  # raised while building the row graph, before anything is stepped
+                return self._kernel(state, ctrl) if self.strategy == "kernel" else self._rows_step(state, ctrl)
+            except rows.Unsupported as err:  # raised while building, before anything is stepped
                 self._fall_back(err)
                 return self(state, ctrl)
         run = self._compiled_loop() if self.strategy == "loop" else self._compiled_calls()
@@ -169,14 +174,27 @@ class Stepper:
         return functools.partial(pipeline.run_substeps, substep=self._compile(method.name, method.substep, True),
                                  finish_step=self._compile("finish", pipeline.finish, True))
 
-    # -- rows
+    # -- kernel and rows
     def _fall_back(self, err: Exception) -> None:
-        """The row graph cannot express the substep: use the method's next strategy, with one warning."""
-        fallback = [s for s in METHODS[self.sys.method].strategies[1:] if _unsupported(self.sys, s) is None]
-        self.strategy = fallback[0] if fallback else "eager"
-        warnings.warn(f"Stepper: the {self.sys.method} substep cannot run as a row graph ({err}); using the "
+        """The step cannot run as this strategy: use the method's next strategy, with one warning."""
+        strategies = METHODS[self.sys.method].strategies
+        later = strategies[strategies.index(self.strategy) + 1:]
+        fallback = [s for s in later if _unsupported(self.sys, s) is None]
+        failed, self.strategy = self.strategy, fallback[0] if fallback else "eager"
+        warnings.warn(f"Stepper: the {self.sys.method} step cannot run as the {failed} strategy ({err}); using the "
                       f"{self.strategy} strategy instead", stacklevel=3)
         self.parts = self._parts()
+
+    def _kernel(self, state: State, ctrl: torch.Tensor) -> State:
+        """The step as one C++ function (``torchsim.step_kernel``), built on first use for the System's values."""
+        key = ("kernel", rows.system_key(self.sys))
+        kernel = self._row_graphs.get(key)
+        if kernel is None:
+            with self._row_lock:
+                kernel = self._row_graphs.get(key)
+                if kernel is None:
+                    kernel = self._row_graphs[key] = StepKernel(self.sys, self.threads)
+        return kernel(state, ctrl)
 
     def _rows_step(self, state: State, ctrl: torch.Tensor) -> State:
         """The step with its substep a row graph that Python calls once per substep, between the compiled step terms
@@ -195,13 +213,13 @@ class Stepper:
 
         def substep_of_rows(poses, per_env_rows, shared_rows):
             ctrl, terms = pytree.tree_unflatten(unpack(per_env_rows, shared_rows), spec)
-            return _join_poses(method.substep(sys, Bodies(*_split_poses(poses, shapes)), ctrl, terms, h))
+            return join_poses(method.substep(sys, Bodies(*split_poses(poses, shapes)), ctrl, terms, h))
 
-        poses = _join_poses(bodies)
+        poses = join_poses(bodies)
         substep = self._row_graph(substep_of_rows, [poses, per_env_rows, shared_rows], layout)
         for _ in range(sys.substeps):
             poses = substep(poses, per_env_rows, shared_rows)
-        bodies = Bodies(*_split_poses(poses, shapes))
+        bodies = Bodies(*split_poses(poses, shapes))
         _batch_dynamic(state, bodies)
         return self._compile("finish", pipeline.finish)(sys, state, bodies)
 
@@ -254,16 +272,6 @@ def _batch_dynamic(batch_first, lanes_last) -> None:
     for x in lanes_last:
         if lanes.per_env(x):
             torch._dynamo.maybe_mark_dynamic(x, x.ndim - 1)
-
-
-def _join_poses(bodies: Bodies) -> torch.Tensor:
-    """The lanes tensors of ``bodies`` as the rows of one ``(rows, B)`` tensor; ``_split_poses`` undoes it."""
-    return torch.cat([x.reshape(-1, x.shape[-1]) for x in bodies])
-
-
-def _split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
-    return [x.view(*shape[:-1], poses.shape[-1])  # the batch size of poses: row graphs trace at another
-            for x, shape in zip(poses.split([shape[:-1].numel() for shape in shapes]), shapes)]
 
 
 def _pack(leaves: list):
