@@ -97,3 +97,18 @@ def test_step_kernel_refuses_a_state_it_would_misread():
     assert stepper.strategy == "kernel"
     with pytest.raises(ValueError, match=r"state.x_pos must be a CPU torch.float32 tensor of shape \(B, 2, 3\)"):
         stepper(state._replace(x_pos=state.x_pos.double()), torch.zeros(3, sys.nu))
+
+
+def test_step_kernel_follows_a_system_edited_in_place():
+    """The kernel bakes the System's values in: editing one of its tensors in place builds a new kernel, whose steps
+    equal the reference step of the edited System (float32 rounding of reordered sums: 1e-5)."""
+    sys = torchsim.load_mjcf(str(torchsim.envs.asset_path("inverted_pendulum.xml")))
+    stepper = torchsim.Stepper(sys, "kernel")
+    state = torchsim.init(sys, sys.q0.expand(3, -1).clone(), torch.zeros(3, sys.nv))
+    ctrl = torch.full((3, sys.nu), 0.5)
+    before = stepper(state, ctrl)
+    with torch.no_grad():
+        sys.body_mass.mul_(3.0)
+    after = stepper(state, ctrl)
+    assert not torch.allclose(after.qd, before.qd, atol=1e-3)
+    torch.testing.assert_close(after.qd, torchsim.step(sys, state, ctrl).qd, rtol=0, atol=1e-5)
