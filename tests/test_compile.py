@@ -136,12 +136,12 @@ def test_steps_recording_gradients_run_eagerly(method="spring"):
 
 
 def test_strategy_selection():
-    """``auto`` picks the C++ step kernel for spring on CPU, the compiled loop once parameters are per env, and
-    compiled calls for xpbd; a strategy that cannot run the System is refused with the reason (nothing compiles here)."""
+    """``auto`` picks the C++ step kernel for spring on CPU (per-env parameters included) and compiled calls for
+    xpbd; a strategy that cannot run the System is refused with the reason (nothing compiles here)."""
     spring = torchsim.load_mjcf(MODEL, method="spring", substeps=2)
     batched = spring.replace(body_mass=spring.body_mass.expand(3, -1))
     xpbd = torchsim.load_mjcf(MODEL, method="xpbd", substeps=2)
-    assert [stepper_module.choose_strategy(s) for s in (spring, batched, xpbd)] == ["kernel", "loop", "calls"]
+    assert [stepper_module.choose_strategy(s) for s in (spring, batched, xpbd)] == ["kernel", "kernel", "calls"]
     assert torchsim.Stepper(xpbd).strategy == "calls" and torchsim.Stepper(spring, "eager").strategy == "eager"
     with pytest.raises(ValueError, match="xpbd method supports"):
         torchsim.Stepper(xpbd, "loop")

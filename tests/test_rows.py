@@ -104,12 +104,11 @@ def test_row_graphs_refuse_the_batch_axis():
         rows.row_graph(lambda x: (x.sum(-1, keepdim=True).expand(3, 4),), [torch.ones(3, 4)])
 
 
-def test_batched_systems_keep_the_loop():
-    """Per-env parameters cannot be baked into a graph: such Systems take the compiled loop, not the C++ step or a
-    row graph, and asking for either names why it cannot be."""
+def test_batched_systems_take_the_kernel_not_a_row_graph():
+    """Per-env parameters cannot be baked into a row graph: such Systems take the C++ step kernel (their per-env
+    parameters its inputs), and asking for a row graph names why it cannot be."""
     sys = torchsim.load_mjcf(str(ANT))
     batched = sys.replace(body_mass=sys.body_mass.expand(4, -1))
-    assert stepper.choose_strategy(sys) == "kernel" and stepper.choose_strategy(batched) == "loop"
-    for strategy in ("kernel", "rows"):
-        with pytest.raises(ValueError, match="parameters shared by every env"):
-            torchsim.Stepper(batched, strategy)
+    assert stepper.choose_strategy(sys) == "kernel" and stepper.choose_strategy(batched) == "kernel"
+    with pytest.raises(ValueError, match="parameters shared by every env"):
+        torchsim.Stepper(batched, "rows")

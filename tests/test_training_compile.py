@@ -99,7 +99,7 @@ def test_compiled_env_step_matches_eager_with_per_env_parameters():
         for action in actions:
             obs.append(env.step(TensorDict(action=action, batch_size=[6]))["next", "observation"])
         trajectories.append(torch.stack(obs))
-    assert env.stepper.strategy == "loop"  # per-env parameters: not a row graph
+    assert env.stepper.strategy == "kernel"  # per-env parameters: inputs of the C++ step
     eager, compiled = trajectories
     assert not torch.equal(eager[:, 0], eager[:, -1])  # the envs differ
     torch.testing.assert_close(compiled, eager, rtol=0, atol=1e-4)

@@ -68,6 +68,15 @@ class Rows:
         self.cells = cells
 
 
+class Moved:
+    """A lanes tensor permuted so that its batch axis is not last: ``x.permute(dims)`` of :class:`Rows` ``x``. Only
+    another permute may use it, and once the batch axis is last again it is rows again: a per-env System parameter
+    enters a row graph as a lanes input, turned batch-first for the System and back by ``lanes.param``."""
+
+    def __init__(self, rows: Rows, dims: list[int]):
+        self.rows, self.dims = rows, dims
+
+
 # Element ops. Python numbers are constants: ops on them fold, and 0 and 1 simplify products and sums (the
 # structural zeros of a model, e.g. a hinge's unused axes, drop out of the graph).
 def _mul(a, b):
@@ -208,7 +217,9 @@ class _RowInterpreter(Interpreter):
         if node.target is operator.getitem:
             return args[0][args[1]]
         flat = [y for x in (*args, *kwargs.values()) for y in (x if isinstance(x, (list, tuple)) else [x])]
-        if not any(isinstance(x, Rows) for x in flat):
+        if any(isinstance(x, Moved) for x in flat) and node.target is not aten.permute.default:
+            raise Unsupported(f"row graphs keep the batch axis last ({node.target} on a batch-first tensor)")
+        if not any(isinstance(x, (Rows, Moved)) for x in flat):
             with disable_proxy_modes_tracing():
                 return node.target(*args, **kwargs)
         if node.target in ELEMENTWISE or torch.Tag.pointwise in node.target.tags:
@@ -267,10 +278,17 @@ class _RowInterpreter(Interpreter):
         return Rows(np.expand_dims(c, self._axis(c, dim, 1)))
 
     def _op_permute_default(self, shape, x, dims):
+        if isinstance(x, Moved):  # compose: the permute of the original rows
+            x, dims = x.rows, [x.dims[d % len(x.dims)] for d in dims]
         c = self.cells(x)
-        if dims[-1] % (c.ndim + 1) != c.ndim:
-            raise Unsupported("row graphs keep the batch axis last")
-        return Rows(np.transpose(c, [d % (c.ndim + 1) for d in dims[:-1]]))
+        dims = [d % (c.ndim + 1) for d in dims]
+        if dims[-1] != c.ndim:
+            return Moved(x if isinstance(x, Rows) else Rows(c), dims)
+        return Rows(np.transpose(c, dims[:-1]))
+
+    def _op_repeat_interleave_self_int(self, shape, x, repeats, dim=None, output_size=None):
+        c = self.cells(x)
+        return Rows(np.repeat(c, repeats, axis=self._axis(c, dim)))
 
     def _op_transpose_int(self, shape, x, dim0, dim1):
         c = self.cells(x)

@@ -13,6 +13,8 @@ substep alone takes minutes (``docs/benchmarks.md``). The built library is kept 
 a later process with the same model, dtype, torch and torchsim source loads it in milliseconds.
 """
 
+import dataclasses
+
 import torch
 import torch.utils._pytree as pytree
 
@@ -20,7 +22,7 @@ from torchsim import lanes, pipeline, progress, row_cache, row_code, rows
 from torchsim.kinematics import Bodies, with_world
 from torchsim.methods import METHODS
 from torchsim.state import State
-from torchsim.system import System
+from torchsim.system import BATCHABLE_RANK, System
 
 
 def join_poses(bodies: Bodies) -> torch.Tensor:
@@ -33,92 +35,141 @@ def split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
             for x, shape in zip(poses.split([shape[:-1].numel() for shape in shapes]), shapes)]
 
 
+def per_env_parameters(sys: System) -> list[tuple]:
+    """Where ``sys`` holds per-env (batched) parameters: ``(name,)`` for a batchable field, ``(group, name)`` for
+    a contact group's ``friction`` or ``margin``."""
+    fields = [(name,) for name, rank in BATCHABLE_RANK.items() if getattr(sys, name).ndim > rank]
+    return fields + [(i, name) for i, group in enumerate(sys.contact_groups) for name in ("friction", "margin")
+                     if getattr(group, name).ndim > 1]
+
+
+def per_env_parameter(sys: System, where: tuple) -> torch.Tensor:
+    """The per-env parameter at ``where`` (:func:`per_env_parameters`)."""
+    return getattr(sys, where[0]) if len(where) == 1 else getattr(sys.contact_groups[where[0]], where[1])
+
+
+def _with(sys: System, wheres: list[tuple], values: list[torch.Tensor]) -> System:
+    """``sys`` with the per-env parameters at ``wheres`` replaced by ``values``."""
+    fields = {w[0]: v for w, v in zip(wheres, values) if len(w) == 1}
+    groups = list(sys.contact_groups)
+    for w, v in zip(wheres, values):
+        if len(w) == 2:
+            groups[w[0]] = groups[w[0]]._replace(**{w[1]: v})
+    return dataclasses.replace(sys, contact_groups=tuple(groups), **fields)
+
+
 class StepKernel:
-    """``torchsim.step(sys, state, ctrl)`` as one generated C++ function, built for ``sys``'s values and dtype on
-    CPU; ``threads`` threads share each batch. Raises ``rows.Unsupported`` when the step cannot be expressed."""
+    """``torchsim.step(sys, state, ctrl)`` as one generated C++ function for Systems like ``sys`` on CPU: its shared
+    parameters' values are built in, its per-env parameters (``set_physics``) are inputs, so a System with other
+    per-env values (``kernel(other_sys, state, ctrl)``) runs on the same function. ``threads`` threads share each
+    batch. Raises ``rows.Unsupported`` when the step cannot be expressed."""
 
     def __init__(self, sys: System, threads: int = 1):
-        if sys.device.type != "cpu" or sys.batched:
-            raise rows.Unsupported("a step kernel runs on CPU, with parameters shared by every env")
-        self.sys = sys
-        # traced at two copies of the model's rest state: only shapes matter, and which terms are per env
-        state = pipeline.init(sys, sys.q0.expand(2, -1).contiguous(), torch.zeros(2, sys.nv, dtype=sys.dtype))
+        if sys.device.type != "cpu":
+            raise rows.Unsupported("a step kernel runs on CPU")
+        # traced at two envs (env 0's per-env parameters, the model's rest state): only shapes matter, and which
+        # terms are per env
+        self.where = per_env_parameters(sys)
+        per_env = [per_env_parameter(sys, w) for w in self.where]
+        probe_sys = _with(sys, self.where, [x[:1].expand(2, *x.shape[1:]).contiguous() for x in per_env])
+        state = pipeline.init(probe_sys, sys.q0.expand(2, -1).contiguous(), torch.zeros(2, sys.nv, dtype=sys.dtype))
         ctrl = torch.zeros(2, sys.nu, dtype=sys.dtype)
-        inputs = [*pipeline.to_lanes_state(state), lanes.to_lanes(ctrl)]
-        key = row_cache.content_key(sys, inputs, {"step kernel": row_code.compiler_command()})
+        params = [lanes.to_lanes(per_env_parameter(probe_sys, w)) for w in self.where]
+        inputs = [*pipeline.to_lanes_state(state), lanes.to_lanes(ctrl), *params]
+        # the key holds the shared parameters' values and the per-env ones' shapes (their values are inputs)
+        shapes_only = _with(sys, self.where, [x.new_zeros(x.shape[1:]) for x in per_env])
+        key = row_cache.content_key(shapes_only, inputs, {"step kernel": row_code.compiler_command()}, self.where)
         path = row_code.library_path(key)
-        what = f"the {sys.method} step ({sys.num_bodies} bodies, {sys.dtype})"
+        what = f"the {sys.method} step ({sys.num_bodies} bodies, {sys.dtype}" + (
+            f", {len(self.where)} per-env parameters)" if self.where else ")")
         if path.is_file():
             progress.log.info("loaded %s from %s", what, path)
         else:
             layouts = [row_code.Tensor.of(x) for x in inputs]
             with progress.announce(f"{what}: tracing its row graphs"):
-                graphs = self._graphs(state, ctrl)
-            program = self._wire(row_code.Program(sys.dtype, layouts, layouts[:7]), *graphs)
+                graphs = _graphs(probe_sys, self.where, state, ctrl, params)
+            program = _wire(row_code.Program(sys.dtype, layouts, layouts[:7]), *graphs, len(params))
             path = row_code.build(program.source(), what, key)
         self.kernel = row_code.Kernel(path, sys.dtype, threads)
+        self.substeps = sys.substeps
         self.fields = [(x.shape[1:], x.dtype) for x in (*state, ctrl)]
 
-    def _graphs(self, state: State, ctrl: torch.Tensor):
-        sys, h = self.sys, self.sys.substep_timestep
-        method = METHODS[sys.method]
-        bodies = with_world(*(lanes.to_lanes(x, 1) for x in state[:4]))
-        shapes = [x.shape for x in bodies]
-        poses = join_poses(bodies)
-        leaves, spec = pytree.tree_flatten(method.step_terms(sys, bodies, h))
-        per_env = [i for i, x in enumerate(leaves) if lanes.per_env(x)]
-
-        def terms(poses):
-            found = pytree.tree_flatten(method.step_terms(sys, Bodies(*split_poses(poses, shapes)), h))[0]
-            return tuple(found[i] for i in per_env)
-
-        def substep(poses, ctrl, *per_env_terms):
-            step_terms = list(leaves)  # the terms every env shares: constants of the graph
-            for i, x in zip(per_env, per_env_terms):
-                step_terms[i] = x
-            after = method.substep(sys, Bodies(*split_poses(poses, shapes)), ctrl,
-                                   pytree.tree_unflatten(step_terms, spec), h)
-            return (join_poses(after),)
-
-        def finish(*old_and_poses):
-            old = State(*old_and_poses[:7])
-            return tuple(pipeline.finish_lanes(sys, old, Bodies(*split_poses(old_and_poses[7], shapes))))
-
-        lanes_ctrl = lanes.to_lanes(ctrl).contiguous()
-        graphs = (rows.row_graph(terms, [poses]),
-                  rows.row_graph(substep, [poses, lanes_ctrl, *(leaves[i] for i in per_env)]),
-                  rows.row_graph(finish, [*(x.contiguous() for x in pipeline.to_lanes_state(state)), poses]))
-        # where each pose row starts a step: a row of the state (input t, its lanes row), or the world body's
-        carried = []
-        n = sys.num_bodies
-        for t, x in enumerate(bodies):
-            for c in range(x.shape[0]):
-                carried += [("input", t, c * n + b) for b in range(n)]
-                carried.append(("value", 1.0 if (t == 1 and c == 0) else 0.0))  # the world: at rest, identity
-        return graphs, carried
-
-    @staticmethod
-    def _wire(program: row_code.Program, graphs, carried) -> row_code.Program:
-        terms_graph, substep_graph, finish_graph = graphs
-        start = [program.input_row(*c[1:]) if c[0] == "input" else c[1] for c in carried]
-        terms = program.add(terms_graph, [lambda r: ("value", start[r])])
-        rows_now = program.loop(start)
-        after = program.add(substep_graph, [lambda r: ("value", rows_now[r]), lambda r: ("input", 7, r)]
-                            + [lambda r, k=k: ("value", terms[k][r]) for k in range(len(terms))])
-        program.end_loop(after[0])
-        new = program.add(finish_graph, [lambda r, t=t: ("input", t, r) for t in range(7)]
-                          + [lambda r: ("value", rows_now[r])])
-        for k, field in enumerate(new):
-            program.store(k, field)
-        return program
-
-    def __call__(self, state: State, ctrl: torch.Tensor) -> State:
+    def __call__(self, sys: System, state: State, ctrl: torch.Tensor) -> State:
         names = [f"state.{field}" for field in State._fields] + ["ctrl"]
         for name, x, (shape, dtype) in zip(names, (*state, ctrl), self.fields):
             if x.shape[1:] != shape or x.dtype != dtype or x.device.type != "cpu":  # the code reads raw memory
                 raise ValueError(f"{name} must be a CPU {dtype} tensor of shape (B, {', '.join(map(str, shape))})"
                                  f" for this System's step kernel, got {x.dtype} {tuple(x.shape)} on {x.device}")
-        inputs = [x.contiguous() for x in (*state, ctrl)]
+        batch = ctrl.shape[0]
+        params = [per_env_parameter(sys, w) for w in self.where]
+        for w, x in zip(self.where, params):
+            if x.shape[0] != batch:
+                raise ValueError(f"the per-env parameter {'.'.join(map(str, w))} has {x.shape[0]} envs, the state "
+                                 f"{batch}")
+        inputs = [x.contiguous() for x in (*state, ctrl, *params)]
         outputs = [torch.empty_like(x) for x in inputs[:7]]
-        self.kernel(ctrl.shape[0], inputs, outputs, self.sys.substeps)
+        self.kernel(batch, inputs, outputs, self.substeps)
         return State(*outputs)
+
+
+def _graphs(sys: System, where: list[tuple], state: State, ctrl: torch.Tensor, params: list[torch.Tensor]):
+    """The step's three row graphs, each taking the per-env parameters (lanes) as its last inputs; and where each
+    pose row starts a step."""
+    h, method = sys.substep_timestep, METHODS[sys.method]
+    bodies = with_world(*(lanes.to_lanes(x, 1) for x in state[:4]))
+    shapes = [x.shape for x in bodies]
+    poses = join_poses(bodies)
+    leaves, spec = pytree.tree_flatten(method.step_terms(sys, bodies, h))
+    per_env = [i for i, x in enumerate(leaves) if lanes.per_env(x)]
+
+    def system(params):  # batch-first again for the System: lanes.param turns them back, row by row
+        return _with(sys, where, [lanes.from_lanes(x) for x in params])
+
+    def terms(poses, *params):
+        found = pytree.tree_flatten(method.step_terms(system(params), Bodies(*split_poses(poses, shapes)), h))[0]
+        return tuple(found[i] for i in per_env)
+
+    def substep(poses, ctrl, *terms_and_params):
+        step_terms = list(leaves)  # the terms every env shares: constants of the graph
+        for i, x in zip(per_env, terms_and_params[:len(per_env)]):
+            step_terms[i] = x
+        after = method.substep(system(terms_and_params[len(per_env):]), Bodies(*split_poses(poses, shapes)), ctrl,
+                               pytree.tree_unflatten(step_terms, spec), h)
+        return (join_poses(after),)
+
+    def finish(*old_poses_and_params):
+        old = State(*old_poses_and_params[:7])
+        new = pipeline.finish_lanes(system(old_poses_and_params[8:]), old,
+                                    Bodies(*split_poses(old_poses_and_params[7], shapes)))
+        return tuple(new)
+
+    lanes_ctrl = lanes.to_lanes(ctrl).contiguous()
+    params = [x.contiguous() for x in params]
+    graphs = (rows.row_graph(terms, [poses, *params]),
+              rows.row_graph(substep, [poses, lanes_ctrl, *(leaves[i] for i in per_env), *params]),
+              rows.row_graph(finish, [*(x.contiguous() for x in pipeline.to_lanes_state(state)), poses, *params]))
+    # where each pose row starts a step: a row of the state (input t, its lanes row), or the world body's
+    carried = []
+    n = sys.num_bodies
+    for t, x in enumerate(bodies):
+        for c in range(x.shape[0]):
+            carried += [("input", t, c * n + b) for b in range(n)]
+            carried.append(("value", 1.0 if (t == 1 and c == 0) else 0.0))  # the world: at rest, identity
+    return graphs, carried
+
+
+def _wire(program: row_code.Program, graphs, carried, count: int) -> row_code.Program:
+    """The Program: inputs 0-6 the state, 7 the controls, 8.. the per-env parameters; outputs the next state."""
+    terms_graph, substep_graph, finish_graph = graphs
+    params = [lambda r, k=k: ("input", 8 + k, r) for k in range(count)]
+    start = [program.input_row(*c[1:]) if c[0] == "input" else c[1] for c in carried]
+    terms = program.add(terms_graph, [lambda r: ("value", start[r])] + params)
+    rows_now = program.loop(start)
+    after = program.add(substep_graph, [lambda r: ("value", rows_now[r]), lambda r: ("input", 7, r)]
+                        + [lambda r, k=k: ("value", terms[k][r]) for k in range(len(terms))] + params)
+    program.end_loop(after[0])
+    new = program.add(finish_graph, [lambda r, t=t: ("input", t, r) for t in range(7)]
+                      + [lambda r: ("value", rows_now[r])] + params)
+    for k, field in enumerate(new):
+        program.store(k, field)
+    return program

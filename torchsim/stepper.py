@@ -34,7 +34,7 @@ from torchsim.kinematics import Bodies
 from torchsim.methods import METHODS
 from torchsim.parts import Parts
 from torchsim.state import State
-from torchsim.step_kernel import StepKernel, join_poses, split_poses
+from torchsim.step_kernel import StepKernel, join_poses, per_env_parameter, per_env_parameters, split_poses
 from torchsim.system import System
 
 STRATEGIES = ("eager", "kernel", "rows", "loop", "calls")
@@ -57,9 +57,8 @@ def _unsupported(sys: System, strategy: str) -> str | None:
         return f"the {sys.method} method supports {('eager',) + METHODS[sys.method].strategies}, not {strategy!r}"
     if strategy in ("kernel", "rows") and sys.device.type != "cpu":
         return f"the {strategy} strategy runs on CPU only"
-    if strategy in ("kernel", "rows") and sys.batched:
-        return (f"the {strategy} strategy bakes the System's parameters in, so it needs parameters shared by every "
-                "env")
+    if strategy == "rows" and sys.batched:
+        return "the rows strategy bakes the System's parameters in, so it needs parameters shared by every env"
     return None
 
 
@@ -189,15 +188,27 @@ class Stepper:
         self.parts = self._parts()
 
     def _kernel(self, state: State, ctrl: torch.Tensor) -> State:
-        """The step as one C++ function (``torchsim.step_kernel``), built on first use for the System's values and
-        again if one of its tensors was edited in place (checked by version counters: ~5 us, where the row graphs'
-        ``rows.system_key`` costs ~45 us, as much as a batch-1 step)."""
+        """The step as one C++ function (``torchsim.step_kernel``), built on first use for the System's shared values
+        and again if one of its tensors was edited in place (checked by version counters: ~5 us, where the row
+        graphs' ``rows.system_key`` costs ~45 us, as much as a batch-1 step). Steppers ``for_system`` made for other
+        per-env values share it."""
         versions, kernel = self._kernel_built or ((), None)
         if kernel is None or versions != [x._version for x in self._sys_tensors]:
             with self._row_lock:
-                kernel = StepKernel(self.sys, self.threads)
+                shared = self._shared.get("kernel")
+                if shared is not None and shared[0] == self._shared_values():
+                    kernel = shared[1]
+                else:
+                    kernel = StepKernel(self.sys, self.threads)
+                    self._shared["kernel"] = (self._shared_values(), kernel)
                 self._kernel_built = ([x._version for x in self._sys_tensors], kernel)
-        return kernel(state, ctrl)
+        return kernel(self.sys, state, ctrl)
+
+    def _shared_values(self) -> tuple:
+        """The identity and version of the System's shared tensors (what a kernel bakes in), and its other values."""
+        per_env = {id(per_env_parameter(self.sys, w)) for w in per_env_parameters(self.sys)}
+        return tuple((x.data_ptr(), x._version, x.shape) if isinstance(x, torch.Tensor) and id(x) not in per_env
+                     else (x.shape if isinstance(x, torch.Tensor) else repr(x)) for x in self.sys.leaves())
 
     def _rows_step(self, state: State, ctrl: torch.Tensor) -> State:
         """The step with its substep a row graph that Python calls once per substep, between the compiled step terms
