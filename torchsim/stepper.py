@@ -7,8 +7,9 @@
 ``docs/physics.md``, "How a step runs"):
 
 - ``eager``: the reference step itself.
-- ``kernel`` (spring, CPU with AVX2 or AVX-512, parameters shared by every env): the whole step as one generated
-  C++ function (``torchsim.step_kernel``): built in seconds, one call per step at any batch size.
+- ``kernel`` (spring, CPU with AVX2 or AVX-512): the whole step as one generated C++ function
+  (``torchsim.step_kernel``): built in seconds, one call per step at any batch size; per-env parameters are its
+  inputs.
 - ``rows`` (spring, CPU, parameters shared by every env): the substep as a row graph (``torchsim.rows``: every
   small axis unrolled, the model's constants folded in), which inductor compiles into one loop over the batch on
   every intra-op thread; Python calls it ``sys.substeps`` times between the compiled step terms and step end.
@@ -42,7 +43,8 @@ STRATEGIES = ("eager", "kernel", "rows", "loop", "calls")
 
 def choose_strategy(sys: System) -> str:
     """The fastest measured strategy for ``sys`` on its device: the first of its method's ``strategies`` that
-    applies (``kernel`` and ``rows`` only on CPU with parameters shared by every env), else the next one."""
+    applies (``kernel`` and ``rows`` only on CPU, ``rows`` only with parameters shared by every env), else the next
+    one."""
     for strategy in METHODS[sys.method].strategies:
         if _unsupported(sys, strategy) is None:
             return strategy
@@ -113,8 +115,9 @@ class Stepper:
 
     def for_system(self, sys: System) -> "Stepper":
         """A stepper like this one for ``sys`` (e.g. with per-env parameters): this one if ``sys`` is its System;
-        compiled code that takes the System as an input is shared, and so are the parts (their threads, and which
-        part sizes have compiled); a row graph, which bakes the System in, is not."""
+        compiled code that takes the System as an input is shared, and so is a step kernel built for the same shared
+        values (its per-env parameters are inputs), and the parts (their threads, and which part sizes have
+        compiled); a row graph, which bakes the System in, is not."""
         if sys is self.sys:
             return self
         return Stepper(sys, self.requested, part_size=self.part_size, threads=self.threads,
