@@ -203,7 +203,8 @@ class Stepper:
                     kernel = shared[1]
                 else:
                     kernel = StepKernel(self.sys, self.threads)
-                    self._shared["kernel"] = (self._shared_values(), kernel)
+                    # the System's tensors kept alive with the key, so that no other tensor takes their addresses
+                    self._shared["kernel"] = (self._shared_values(), kernel, self._sys_tensors)
                 self._kernel_built = ([x._version for x in self._sys_tensors], kernel)
         return kernel(self.sys, state, ctrl)
 
