@@ -17,7 +17,6 @@ hold the GIL most of the time, and eager ops gain from large batches), and so do
 whole batch, spread over every intra-op thread).
 """
 
-import dataclasses
 import itertools
 import math
 import threading
@@ -26,7 +25,7 @@ from concurrent.futures import ThreadPoolExecutor
 import torch
 
 from torchsim.state import State
-from torchsim.system import BATCHABLE_RANK, System
+from torchsim.system import System
 
 
 class Parts:
@@ -89,7 +88,5 @@ def system_part(sys: System, batch: int, start: int, stop: int) -> System:
                              f"got shape {tuple(x.shape)}")
         return x[start:stop]
 
-    changes = {name: part(getattr(sys, name), rank) for name, rank in BATCHABLE_RANK.items()}
-    groups = tuple(g._replace(friction=part(g.friction, 1), margin=part(g.margin, 1))
-                   for g in sys.contact_groups)
-    return dataclasses.replace(sys, contact_groups=groups, **changes)
+    wheres, ranks = zip(*sys.batchable())
+    return sys.with_parameters(list(wheres), [part(sys.parameter(w), r) for w, r in zip(wheres, ranks)])

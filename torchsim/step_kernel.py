@@ -1,4 +1,5 @@
-"""A whole step as one generated C++ function: ``torchsim.step`` for a System whose parameters every env shares.
+"""A whole step as one generated C++ function: ``torchsim.step`` for a spring System on CPU, its per-env parameters
+inputs of the function and its shared ones constants in it.
 
 The step is three row graphs (``torchsim.rows``) of the reference pipeline's own functions, chained by
 ``torchsim.row_code`` into one function that reads the public state and controls and writes the next state:
@@ -13,8 +14,6 @@ substep alone takes minutes (``docs/benchmarks.md``). The built library is kept 
 a later process with the same model, dtype, torch and torchsim source loads it in milliseconds.
 """
 
-import dataclasses
-
 import torch
 import torch.utils._pytree as pytree
 
@@ -22,7 +21,7 @@ from torchsim import lanes, pipeline, progress, row_cache, row_code, rows
 from torchsim.kinematics import Bodies, with_world
 from torchsim.methods import METHODS
 from torchsim.state import State
-from torchsim.system import BATCHABLE_RANK, System
+from torchsim.system import System
 
 
 def join_poses(bodies: Bodies) -> torch.Tensor:
@@ -33,29 +32,6 @@ def join_poses(bodies: Bodies) -> torch.Tensor:
 def split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
     return [x.view(*shape[:-1], poses.shape[-1])  # the batch size of poses: row graphs trace at another
             for x, shape in zip(poses.split([shape[:-1].numel() for shape in shapes]), shapes)]
-
-
-def per_env_parameters(sys: System) -> list[tuple]:
-    """Where ``sys`` holds per-env (batched) parameters: ``(name,)`` for a batchable field, ``(group, name)`` for
-    a contact group's ``friction`` or ``margin``."""
-    fields = [(name,) for name, rank in BATCHABLE_RANK.items() if getattr(sys, name).ndim > rank]
-    return fields + [(i, name) for i, group in enumerate(sys.contact_groups) for name in ("friction", "margin")
-                     if getattr(group, name).ndim > 1]
-
-
-def per_env_parameter(sys: System, where: tuple) -> torch.Tensor:
-    """The per-env parameter at ``where`` (:func:`per_env_parameters`)."""
-    return getattr(sys, where[0]) if len(where) == 1 else getattr(sys.contact_groups[where[0]], where[1])
-
-
-def _with(sys: System, wheres: list[tuple], values: list[torch.Tensor]) -> System:
-    """``sys`` with the per-env parameters at ``wheres`` replaced by ``values``."""
-    fields = {w[0]: v for w, v in zip(wheres, values) if len(w) == 1}
-    groups = list(sys.contact_groups)
-    for w, v in zip(wheres, values):
-        if len(w) == 2:
-            groups[w[0]] = groups[w[0]]._replace(**{w[1]: v})
-    return dataclasses.replace(sys, contact_groups=tuple(groups), **fields)
 
 
 class StepKernel:
@@ -69,15 +45,15 @@ class StepKernel:
             raise rows.Unsupported("a step kernel runs on CPU")
         # traced at two envs (env 0's per-env parameters, the model's rest state): only shapes matter, and which
         # terms are per env
-        self.where = per_env_parameters(sys)
-        per_env = [per_env_parameter(sys, w) for w in self.where]
-        probe_sys = _with(sys, self.where, [x[:1].expand(2, *x.shape[1:]).contiguous() for x in per_env])
+        self.where = sys.per_env_parameters()
+        per_env = [sys.parameter(w) for w in self.where]
+        probe_sys = sys.with_parameters(self.where, [x[:1].expand(2, *x.shape[1:]).contiguous() for x in per_env])
         state = pipeline.init(probe_sys, sys.q0.expand(2, -1).contiguous(), torch.zeros(2, sys.nv, dtype=sys.dtype))
         ctrl = torch.zeros(2, sys.nu, dtype=sys.dtype)
-        params = [lanes.to_lanes(per_env_parameter(probe_sys, w)) for w in self.where]
+        params = [lanes.to_lanes(probe_sys.parameter(w)) for w in self.where]
         inputs = [*pipeline.to_lanes_state(state), lanes.to_lanes(ctrl), *params]
         # the key holds the shared parameters' values and the per-env ones' shapes (their values are inputs)
-        shapes_only = _with(sys, self.where, [x.new_zeros(x.shape[1:]) for x in per_env])
+        shapes_only = sys.with_parameters(self.where, [x.new_zeros(x.shape[1:]) for x in per_env])
         key = row_cache.content_key(shapes_only, inputs, {"step kernel": row_code.compiler_command()}, self.where)
         path = row_code.library_path(key)
         what = f"the {sys.method} step ({sys.num_bodies} bodies, {sys.dtype}" + (
@@ -101,7 +77,7 @@ class StepKernel:
                 raise ValueError(f"{name} must be a CPU {dtype} tensor of shape (B, {', '.join(map(str, shape))})"
                                  f" for this System's step kernel, got {x.dtype} {tuple(x.shape)} on {x.device}")
         batch = ctrl.shape[0]
-        params = [per_env_parameter(sys, w) for w in self.where]
+        params = [sys.parameter(w) for w in self.where]
         for w, x in zip(self.where, params):
             if x.shape[0] != batch:
                 raise ValueError(f"the per-env parameter {'.'.join(map(str, w))} has {x.shape[0]} envs, the state "
@@ -123,7 +99,7 @@ def _graphs(sys: System, where: list[tuple], state: State, ctrl: torch.Tensor, p
     per_env = [i for i, x in enumerate(leaves) if lanes.per_env(x)]
 
     def system(params):  # batch-first again for the System: lanes.param turns them back, row by row
-        return _with(sys, where, [lanes.from_lanes(x) for x in params])
+        return sys.with_parameters(where, [lanes.from_lanes(x) for x in params])
 
     def terms(poses, *params):
         found = pytree.tree_flatten(method.step_terms(system(params), Bodies(*split_poses(poses, shapes)), h))[0]

@@ -35,7 +35,7 @@ from torchsim.kinematics import Bodies
 from torchsim.methods import METHODS
 from torchsim.parts import Parts
 from torchsim.state import State
-from torchsim.step_kernel import StepKernel, join_poses, per_env_parameter, per_env_parameters, split_poses
+from torchsim.step_kernel import StepKernel, join_poses, split_poses
 from torchsim.system import System
 
 STRATEGIES = ("eager", "kernel", "rows", "loop", "calls")
@@ -210,7 +210,7 @@ class Stepper:
 
     def _shared_values(self) -> tuple:
         """The identity and version of the System's shared tensors (what a kernel bakes in), and its other values."""
-        per_env = {id(per_env_parameter(self.sys, w)) for w in per_env_parameters(self.sys)}
+        per_env = {id(self.sys.parameter(w)) for w in self.sys.per_env_parameters()}
         return tuple((x.data_ptr(), x._version, x.shape) if isinstance(x, torch.Tensor) and id(x) not in per_env
                      else (x.shape if isinstance(x, torch.Tensor) else repr(x)) for x in self.sys.leaves())
 

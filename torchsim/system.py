@@ -190,11 +190,34 @@ class System:
         """Whether any parameter tensor requires grad (e.g. masses being fitted)."""
         return any(isinstance(x, torch.Tensor) and x.requires_grad for x in self.leaves())
 
+    def batchable(self) -> list[tuple[tuple, int]]:
+        """Every batchable parameter, as ``(where, rank)``: ``where`` is ``(name,)`` for a field of
+        ``BATCHABLE_RANK`` or ``(group, name)`` for a contact group's ``friction`` or ``margin``; ``rank`` its rank
+        without a per-env dimension."""
+        return [((name,), rank) for name, rank in BATCHABLE_RANK.items()] + [
+            ((i, name), 1) for i in range(len(self.contact_groups)) for name in ("friction", "margin")]
+
+    def parameter(self, where: tuple) -> torch.Tensor:
+        """The batchable parameter at ``where`` (:meth:`batchable`)."""
+        return getattr(self, where[0]) if len(where) == 1 else getattr(self.contact_groups[where[0]], where[1])
+
+    def with_parameters(self, wheres: list[tuple], values: list[torch.Tensor]) -> "System":
+        """This System with the batchable parameters at ``wheres`` replaced by ``values``."""
+        fields = {w[0]: v for w, v in zip(wheres, values) if len(w) == 1}
+        groups = list(self.contact_groups)
+        for w, v in zip(wheres, values):
+            if len(w) == 2:
+                groups[w[0]] = groups[w[0]]._replace(**{w[1]: v})
+        return dataclasses.replace(self, contact_groups=tuple(groups), **fields)
+
+    def per_env_parameters(self) -> list[tuple]:
+        """Where the System holds per-env parameters: the batchable ones with a leading per-env dimension."""
+        return [where for where, rank in self.batchable() if self.parameter(where).ndim > rank]
+
     @property
     def batched(self) -> bool:
         """Whether some batchable parameter carries a leading per-env dimension (``BATCHABLE_RANK``)."""
-        return any(getattr(self, name).ndim > rank for name, rank in BATCHABLE_RANK.items()) or any(
-            g.friction.ndim > 1 or g.margin.ndim > 1 for g in self.contact_groups)
+        return bool(self.per_env_parameters())
 
     @property
     def dtype(self) -> torch.dtype:
