@@ -35,6 +35,7 @@ class PPO:
         # of a 5 ms minibatch step on the main job)
         self.optim = torch.optim.Adam(self.loss_module.parameters(), lr=a.lr, eps=1e-5, fused=True)
         frames = a.num_envs * a.unroll
+        self.lr_schedule = self._lr_schedule(cfg, frames)
         if frames % a.minibatches:
             raise ValueError(f"algo.minibatches ({a.minibatches}) must divide the env steps per iteration "
                              f"(num_envs x unroll = {frames}): every minibatch has the loss graph's shape")
@@ -50,9 +51,20 @@ class PPO:
         self.loss_inputs = {*self.actor.in_keys, *self.critic.in_keys, k.action, k.sample_log_prob, k.advantage,
                             k.value_target}
 
+    def _lr_schedule(self, cfg, frames):
+        """``algo.anneal_lr``: the learning rate falls linearly to 0 over ``budget.env_steps`` (one step per update);
+        else None (a constant rate)."""
+        if not cfg.algo.anneal_lr:
+            return None
+        if cfg.budget.env_steps is None:
+            raise ValueError("algo.anneal_lr needs budget.env_steps: the learning rate reaches 0 there")
+        updates = -(-int(cfg.budget.env_steps) // frames)
+        return torch.optim.lr_scheduler.LinearLR(self.optim, 1.0, 0.0, total_iters=updates)
+
     def state(self) -> dict:
         """What a checkpoint holds and a resumed run restores."""
-        return {"loss": self.loss_module, "optim": self.optim, "obs_norm": obs_norm(self.env)}
+        state = {"loss": self.loss_module, "optim": self.optim, "obs_norm": obs_norm(self.env)}
+        return state if self.lr_schedule is None else {**state, "lr_schedule": self.lr_schedule}
 
     def update(self, data, check_update) -> dict:
         """Up to ``epochs`` passes over ``data`` (num_envs, unroll), fewer if an epoch's mean approximate KL from
@@ -69,8 +81,11 @@ class PPO:
         with torch.compiler.set_stance(skip_guard_eval_unsafe=self.updates > 0):
             losses, kl, epoch = self._epochs(a, check_update)
         self.updates += 1
+        lr = self.optim.param_groups[0]["lr"]
+        if self.lr_schedule is not None:
+            self.lr_schedule.step()
         return {**losses.select("loss_objective", "loss_critic", "loss_entropy").detach(), "kl_approx": kl,
-                "epochs": epoch}
+                "epochs": epoch, "lr": lr}
 
     def _epochs(self, a, check_update):
         """The minibatch Adam steps of one update: (last minibatch's losses, last epoch's mean KL, epochs run)."""

@@ -35,7 +35,7 @@ def tiny(algo, *overrides):
 # PPO's batch is set here (256 envs x 16 steps, 4 epochs x 8 minibatches, as the eager recipes ran) rather than
 # taken from the tuned config, which is sized for the compiled engine's 2048 envs.
 SMALL_PPO = ["algo.num_envs=256", "algo.unroll=16", "algo.epochs=4", "algo.minibatches=8", "obs_norm_decay=1.0",
-             "eval.episodes=256", "eval.max_steps=${env.episode_length}", "eval.at_start=true"]
+             "algo.lr=3e-4", "algo.anneal_lr=false", "eval.episodes=256", "eval.max_steps=${env.episode_length}", "eval.at_start=true"]
 
 
 @pytest.mark.parametrize("algo, limit, env_steps", [("ppo", 50, 90_112), ("sac", 200, 16_384)])
@@ -88,6 +88,16 @@ def test_hydra_override_smoke(algo, tmp_path):
     assert finished.iteration == 2 and finished.env_steps == 32
     assert (tmp_path / "curves.png").is_file() and (tmp_path / "checkpoints" / "last.pt").is_file()
     assert any((tmp_path / "logs").rglob("*.csv"))
+
+
+def test_lr_falls_linearly_to_zero_at_the_env_step_budget(tmp_path):
+    """Three updates of 16 env steps: the schedule spans exactly them and leaves the rate at 0."""
+    finished = run(tiny("ppo", "algo.anneal_lr=true", "algo.lr=1e-3", "budget.env_steps=48"), tmp_path)
+    schedule = finished.state["lr_schedule"]
+    assert finished.iteration == 3 and schedule.total_iters == 3
+    assert finished.state["optim"].param_groups[0]["lr"] == schedule.get_last_lr()[0] == 0.0
+    with pytest.raises(ValueError, match="budget.env_steps"):
+        run(tiny("ppo", "algo.anneal_lr=true", "budget.env_steps=null", "budget.minutes=1"), tmp_path / "no_budget")
 
 
 def test_bad_config_fails_fast():

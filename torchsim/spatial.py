@@ -99,9 +99,14 @@ def component_formulas():
         _COMPONENT_FORMULAS.reset(token)
 
 
+_CROSS_CALL_MAX_ELEMENTS = 6144
+
+
 def cross(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """Cross product of vectors ``(3, ...)``, broadcasting over the trailing axes."""
-    if not _compiling():
+    # linalg.cross is one call, but its loop does not vectorise: past a few thousand elements the per-component
+    # formula is faster (2 cores: 50 against 176 us at (3, 2048, 9), 20 against 20 at (3, 2048))
+    if not _compiling() and max(a.numel(), b.numel()) <= _CROSS_CALL_MAX_ELEMENTS:
         return torch.linalg.cross(a, b, dim=0)
     (ax, ay, az), (bx, by, bz) = a, b
     return torch.stack((ay * bz - az * by, az * bx - ax * bz, ax * by - ay * bx))
