@@ -35,7 +35,8 @@ def tiny(algo, *overrides):
 # PPO's batch is set here (256 envs x 16 steps, 4 epochs x 8 minibatches, as the eager recipes ran) rather than
 # taken from the tuned config, which is sized for the compiled engine's 2048 envs.
 SMALL_PPO = ["algo.num_envs=256", "algo.unroll=16", "algo.epochs=4", "algo.minibatches=8", "obs_norm_decay=1.0",
-             "algo.lr=3e-4", "algo.anneal_lr=false", "eval.episodes=256", "eval.max_steps=${env.episode_length}", "eval.at_start=true"]
+             "algo.lr=3e-4", "algo.anneal_lr=false", "eval.episodes=256", "eval.max_steps=${env.episode_length}",
+             "eval.at_start=true"]
 
 
 @pytest.mark.parametrize("algo, limit, env_steps", [("ppo", 50, 90_112), ("sac", 200, 16_384)])
