@@ -14,6 +14,13 @@ SHIPPED = sorted(p for p in ANT.parent.iterdir() if p.suffix in (".xml", ".urdf"
 METHODS = ["xpbd", "spring"]
 F64 = torch.float64
 
+# A 0.5 m pendulum (capsule rod, sphere bob) on a hinge about y, 1 ms timestep.
+PENDULUM = """
+<mujoco><option timestep="0.001"/><worldbody>
+  <body pos="0 0 1"><joint type="hinge" axis="0 1 0"/>
+    <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.02"/><geom type="sphere" pos="0 0 -0.5" size="0.05"/>
+  </body></worldbody></mujoco>"""
+
 # A single free sphere that touches nothing (no floor, contype = conaffinity = 0), 1 ms timestep.
 PROJECTILE = """
 <mujoco model="projectile">

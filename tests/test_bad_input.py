@@ -50,18 +50,18 @@ def test_missing_file(tmp_path):
     assert str(path) in str(err.value)
 
 
-def test_tendon_unsupported():
-    xml = TWO_HINGES.format(extra="""<tendon><fixed name="coupling">
-        <joint joint="h1" coef="1"/><joint joint="h2" coef="-1"/></fixed></tendon>""")
+def test_spatial_tendon_unsupported():
+    xml = TWO_HINGES.format(extra="""<worldbody><site name="a" pos="0 0 2"/><site name="b" pos="0 0 3"/></worldbody>
+        <tendon><spatial name="cable"><site site="a"/><site site="b"/></spatial></tendon>""")
     mujoco.MjModel.from_xml_string(xml)  # valid MJCF: the rejection is torchsim's
-    with pytest.raises(torchsim.UnsupportedMJCFError, match="tendon"):
+    with pytest.raises(torchsim.UnsupportedMJCFError, match="'cable'.*spatial"):
         torchsim.load_mjcf(xml)
 
 
 def test_equality_unsupported():
-    xml = TWO_HINGES.format(extra='<equality><joint joint1="h1" joint2="h2"/></equality>')
-    mujoco.MjModel.from_xml_string(xml)
-    with pytest.raises(torchsim.UnsupportedMJCFError, match="equality"):
+    xml = TWO_HINGES.format(extra='<equality><connect name="pin" body1="l2" anchor="0.3 0 0"/></equality>')
+    mujoco.MjModel.from_xml_string(xml)  # <tendon> and <joint> equality constraints load: tests/test_equality.py
+    with pytest.raises(torchsim.UnsupportedMJCFError, match="equality constraint 'pin'.*<connect>"):
         torchsim.load_mjcf(xml)
 
 
@@ -78,12 +78,26 @@ CYLINDER = """
 """
 
 
-def test_colliding_cylinder_unsupported():
+MESH = """
+<mujoco>
+  <asset><mesh name="tetrahedron" vertex="0 0 0  0.1 0 0  0 0.1 0  0 0 0.1"/></asset>
+  <worldbody>
+    <geom name="floor" type="plane" size="5 5 0.1"/>
+    <body pos="0 0 1"><freejoint/>
+      <geom name="rock" type="mesh" mesh="tetrahedron"/>
+    </body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_colliding_mesh_unsupported():
+    mujoco.MjModel.from_xml_string(MESH)
     with pytest.raises(torchsim.UnsupportedMJCFError) as err:
-        torchsim.load_mjcf(CYLINDER.format(flags=""))
+        torchsim.load_mjcf(MESH)
     msg = str(err.value)
-    assert "barrel" in msg
-    for shape in ("plane", "sphere", "capsule", "box"):
+    assert "rock" in msg and "MESH" in msg
+    for shape in ("plane", "sphere", "capsule", "box", "ellipsoid", "cylinder"):
         assert shape in msg
 
 

@@ -7,13 +7,7 @@ import pytest
 import torch
 
 import torchsim
-from models import ANT, F64, METHODS
-
-PENDULUM = """
-<mujoco><option timestep="0.001"/><worldbody>
-  <body pos="0 0 1"><joint type="hinge" axis="0 1 0"/>
-    <geom type="capsule" fromto="0 0 0 0 0 -0.5" size="0.02"/><geom type="sphere" pos="0 0 -0.5" size="0.05"/>
-  </body></worldbody></mujoco>"""
+from models import ANT, F64, METHODS, PENDULUM
 
 TRIPLE = """
 <mujoco><option timestep="0.001"/><worldbody>

@@ -2,7 +2,8 @@
 
 Each shape pair has a fixed number of contact points (a box on a plane tests its 8 corners), so the contact
 count is static and activity is a mask, never control flow. Geom ``a`` is the lower-ranked shape of a pair
-(sphere < capsule < box < plane); normals point from ``b`` towards ``a``.
+(sphere < capsule < ellipsoid < cylinder < box < plane); normals point from ``b`` towards ``a``. Pairs with an
+ellipsoid or a cylinder are computed in ``torchsim.collision_round``, which gives their accuracy.
 
 Tensors are in the lanes layout (``torchsim.lanes``). A group's ``P`` pairs with ``K`` points each are evaluated as
 ``(*C, P, K, B)``, the point axis at ``-2`` as every entity axis inserted before the batch, and flattened to the
@@ -17,11 +18,11 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import lanes, spatial
+from torchsim import collision_round, lanes, spatial
 from torchsim.kinematics import Bodies
 from torchsim.system import POINTS_PER_PAIR, System
 
-SHAPE_RANK = {"sphere": 0, "capsule": 1, "box": 2, "plane": 3}
+SHAPE_RANK = {"sphere": 0, "capsule": 1, "ellipsoid": 2, "cylinder": 3, "box": 4, "plane": 5}
 # unit box corners (3, 1, 8, 1): components, then broadcast over pairs, the 8 corners, broadcast over the batch
 _CORNERS = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
                         dtype=torch.float64).T[:, None, :, None]
@@ -109,19 +110,25 @@ def _box_corners(pos, rot, size):
 
 def _pair_contacts(kind, pa, rot_a, sa, pb, rot_b, sb):
     """Contacts of one shape pair for world geom positions ``(3, P, B)``, rotations ``rot_a, rot_b (3, 3, P, B)``
-    (only their z columns, ``(3, 1, P, B)``, where the pair has no box) and sizes ``(3, P, 1)``; returns point
-    ``(3, P, K, B)``, normal ``(3, P, K, B)``, distance ``(P, K, B)``."""
+    (only their z columns, ``(3, 1, P, B)``, where the pair has no box, ellipsoid or cylinder) and sizes
+    ``(3, P, 1)``; returns point ``(3, P, K, B)``, normal ``(3, P, K, B)``, distance ``(P, K, B)``."""
     if kind.endswith("_plane"):
         normal = rot_b[:, -1]  # the plane's z axis
         if kind == "sphere_plane":
             pts, radius = pa.unsqueeze(-2), sa[0].unsqueeze(-2)
         elif kind == "capsule_plane":
             pts, radius = torch.stack(_segment(pa, rot_a, sa), -2), sa[0].unsqueeze(-2)
-        else:
+        elif kind == "box_plane":
             pts, radius = _box_corners(pa, rot_a, sa), 0.0
+        else:
+            pts, radius = collision_round.plane_points(kind[:-6], pa, rot_a, sa, normal), 0.0
         normal = normal.unsqueeze(-2).expand_as(pts)
         dist = spatial.dot(pts - pb.unsqueeze(-2), normal) - radius
         return pts - normal * (radius + 0.5 * dist), normal, dist
+    if kind == "ellipsoid_ellipsoid":
+        return collision_round.ellipsoid_pair(pa, rot_a, sa, pb, rot_b, sb)
+    if kind == "cylinder_cylinder":
+        return collision_round.cylinder_pair(pa, rot_a, sa, pb, rot_b, sb)
     if kind == "box_box":
         pt_a, n_a, d_a = _point_box(_box_corners(pa, rot_a, sa), 0.0, pb.unsqueeze(-2), rot_b.unsqueeze(-2),
                                     sb.unsqueeze(-2))
@@ -137,9 +144,11 @@ def _pair_contacts(kind, pa, rot_a, sa, pb, rot_b, sb):
         ca, cb = _segments_closest(p0, p1, q0, q1)
         pt, n, d = _sphere_sphere(ca, sa[0], cb, sb[0])
         return pt.unsqueeze(-2), n.unsqueeze(-2), d.unsqueeze(-2)
-    else:  # capsule_box
+    else:  # capsule_box, capsule_ellipsoid, capsule_cylinder
         p0, p1 = _segment(pa, rot_a, sa)
-        centres = torch.stack((p0, p1, _closest_on_segment(p0, p1, pb)), -2)
+        middle = (_closest_on_segment(p0, p1, pb) if kind == "capsule_box"
+                  else collision_round.segment_point(kind[8:], p0, p1, pb, rot_b, sb))
+        centres = torch.stack((p0, p1, middle), -2)
     ra = sa[0].unsqueeze(-2)
     if kind.endswith("_sphere"):
         return _sphere_sphere(centres, ra, pb.unsqueeze(-2), sb[0].unsqueeze(-2))
@@ -147,7 +156,10 @@ def _pair_contacts(kind, pa, rot_a, sa, pb, rot_b, sb):
         q0, q1 = _segment(pb, rot_b, sb)
         nearest = _closest_on_segment(q0.unsqueeze(-2), q1.unsqueeze(-2), centres)
         return _sphere_sphere(centres, ra, nearest, sb[0].unsqueeze(-2))
-    return _point_box(centres, ra, pb.unsqueeze(-2), rot_b.unsqueeze(-2), sb.unsqueeze(-2))
+    if kind.endswith("_box"):
+        return _point_box(centres, ra, pb.unsqueeze(-2), rot_b.unsqueeze(-2), sb.unsqueeze(-2))
+    return collision_round.point_round(kind.split("_")[1], centres, ra, pb.unsqueeze(-2), rot_b.unsqueeze(-2),
+                                       sb.unsqueeze(-2))
 
 
 def _on_world(group) -> bool:
@@ -169,7 +181,8 @@ def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Co
         on_world = _on_world(group)
         geom = group.geom_a if on_world else torch.cat((group.geom_a, group.geom_b))  # moving sides' poses at once
         body = sys.geom_body[geom]
-        frames = geom_rot if "box" in group.kind else geom_rot[:, 2:]  # capsules and planes need only their z axes
+        full = any(shape in group.kind for shape in ("box", "ellipsoid", "cylinder"))
+        frames = geom_rot if full else geom_rot[:, 2:]  # capsules and planes need only their z axes
         x, r = bodies.x_pos.index_select(-2, body), rot.index_select(-2, body)
         world_pos = x + spatial.matvec(r, geom_pos.index_select(-2, geom))
         world_rot = spatial.mm(r, frames.index_select(-2, geom))

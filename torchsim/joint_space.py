@@ -5,6 +5,14 @@ inertia every impulse on that dof meets. For dofs with armature ``J``, damping `
 rates ``qd_ref``, the dof impulses ``mu`` solve ``(A + diag(1 / (J + h c))) mu = J qd_ref / (J + h c) - qd_raw``
 (``A``: the dofs' inverse inertia through the bodies): implicit damping, as in MuJoCo's Euler integrator, on dofs
 whose inertia includes the armature.
+
+Joint ``frictionloss`` (dry friction, MuJoCo's ``dof_frictionloss``) joins the same solve as one more dof impulse,
+clamped to ``frictionloss * h`` per substep: it stops the dof when that is enough (stiction), else takes the full
+``frictionloss * h`` against the motion (deceleration ``frictionloss / inertia``). A velocity-level impulse, not a
+force: an explicit force ``-frictionloss sign(qd)`` flips sign every substep around rest and never holds a dof,
+while the clamped impulse holds it exactly in the substep it acts (MuJoCo's soft friction constraint lets a held
+dof creep instead). It is sized by the dof's effective inverse inertia with armature and implicit damping, the
+inertia every impulse on the dof meets, so a heavy rotor is decelerated at ``frictionloss / (I + J)``.
 """
 
 import torch
@@ -32,9 +40,10 @@ def hinge_incidence(jnt_child, jnt_parent, dof_jnt, dof_is_hinge, num_bodies: in
 
 
 def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, frames: JointFrames,
-                     qd_ref: torch.Tensor, damping_h: torch.Tensor):
+                     qd_ref: torch.Tensor, damping_h: torch.Tensor, friction_h: torch.Tensor | None = None):
     """Armature (a rotor per hinge dof turning at ``qd_ref (D, B)``) and implicit damping ``damping_h = h c
-    (D, 1 | B)`` on all hinge dofs at once: one dense ``D x D`` solve per env.
+    (D, 1 | B)`` on all hinge dofs at once: one dense ``D x D`` solve per env; with ``friction_h = h frictionloss
+    (D, 1 | B)`` [N m s], dry friction on the hinges ``sys.dof_friction_hinges`` too (:func:`_hinge_friction`).
 
     Dof ``i`` turns its child against its parent about ``u_i``, the row of ``G = A^-1`` for its slot (its axis for
     a single hinge), so ``A_ij = sum_b s_ib s_jb u_i^T I_b^-1 u_j`` (``s = +1`` child, ``-1`` parent) is the dofs'
@@ -66,21 +75,54 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     diagonal = torch.arange(n_dof, device=u.device) * (n_dof + 1)
     mat = a_flat.index_add(0, diagonal, compliance.expand(n_dof, batch)).view(n_dof, n_dof, batch)
     a = a_flat.view(n_dof, n_dof, batch)
-    mu = spatial.spd_solve(mat, rhs)
+    mu = spatial.spd_solve(mat, rhs) if friction_h is None else _hinge_friction(sys, mat, a, rhs, qd_raw, friction_h)
     xd_ang = bodies.xd_ang.index_add(-2, body, w_inc * mu.index_select(-2, dof))  # I_b^-1 sum_k s_k u_k mu_k
     return bodies._replace(xd_ang=xd_ang), qd_raw + spatial.matvec(a, mu)
+
+
+def _hinge_friction(sys: System, mat: torch.Tensor, a: torch.Tensor, rhs: torch.Tensor, qd_raw: torch.Tensor,
+                     friction_h: torch.Tensor) -> torch.Tensor:
+    """The dof impulses ``mu (D, B)`` of :func:`hinge_rate_solve`'s system ``mat mu = rhs`` (``mat (D, D, B)``,
+    ``a (D, D, B)`` its part ``A``) with a dry-friction impulse ``p_k``, ``|p_k| <= friction_h_k``, on each
+    frictional hinge ``k``.
+
+    An impulse ``p`` on the dofs changes their rates by ``W p``, ``W = A - A mat^-1 A = (A^-1 + diag(J + h c))^-1``
+    (the rotor and damper take their share), and the rotor and damper impulses by ``-mat^-1 A p``; one solve with
+    the ``F`` frictional columns of ``A`` as extra right-hand sides gives both. The ``p_k`` then take one
+    Gauss-Seidel sweep over the ``F`` frictional hinges, each clamped: exact for one frictional hinge, or for
+    several that share no body; otherwise what one sweep leaves is taken up in the next substep.
+    """
+    dofs = sys.dof_friction_hinges
+    a_f = a.index_select(1, dofs)  # (D, F, B)
+    x = spatial.spd_solve(mat, torch.cat((rhs.unsqueeze(1), a_f), 1))
+    mu, x_f = x[:, 0], x[:, 1:]
+    qd = (qd_raw + spatial.matvec(a, mu)).index_select(0, dofs)
+    w = a_f.index_select(0, dofs) - (a_f.unsqueeze(2) * x_f.unsqueeze(1)).sum(0)  # (F, F, B), A symmetric
+    limit = friction_h.index_select(0, dofs)
+    p = []  # (1, B) slices, not (B,) rows: row graphs (torchsim.rows) cannot read a (1,)-shaped constant
+    for k in range(dofs.shape[0]):
+        row = slice(k, k + 1)
+        stop = -(qd[row] + sum(w[row, j] * p[j] for j in range(k))) / w[row, k]
+        p.append(torch.minimum(torch.maximum(stop, -limit[row]), limit[row]))
+    p = torch.cat(p)
+    return mu.index_add(0, dofs, p) - (x_f * p).sum(1)
 
 
 def slide_inertia_and_damping(sys: System, before: Bodies, after: Bodies, axes: torch.Tensor, qd: torch.Tensor,
                               inv: rigid.InverseInertia, h: float):
     """The same for slide dofs, one dof at a time: of the change ``dqd`` forces made, ``dqd / (1 + J w)`` is kept
-    (``w = 1/m_c + 1/m_p``), then damping is implicit. ``axes (3, D, B)``, rates ``qd (D, B)``. Returns bodies and
-    every dof's rate ``(D, B)``."""
+    (``w = 1/m_c + 1/m_p``), then damping is implicit, then dry friction (``sys.dof_friction_slides``) takes an
+    impulse of at most ``h frictionloss`` meeting the effective inverse mass ``w / (1 + J w + h c w)``.
+    ``axes (3, D, B)``, rates ``qd (D, B)``. Returns bodies and every dof's rate ``(D, B)``."""
     w = rigid.dof_inverse_mass(sys, inv, axes)
     dqd = rigid.dof_rate_change(sys, axes, before, after)
     armature, damping = lanes.param(sys.dof_armature, 1), lanes.param(sys.dof_damping, 1)
     shrink = 1.0 / (1.0 + armature * w)
     target = (qd + dqd * shrink) / (1.0 + h * damping * w * shrink)
+    if sys.dof_friction_slides:
+        w_eff = w / (1.0 + armature * w + h * damping * w)
+        limit = h * lanes.param(sys.dof_frictionloss, 1)
+        target = target + w_eff * torch.minimum(torch.maximum(-target / w_eff, -limit), limit)
     impulse = torch.where(lanes.param(sys.dof_is_hinge, 1), 0.0, (target - (qd + dqd)) / w)
     return rigid.apply_dof_impulse(sys, after, inv, axes, impulse, position=False), target
 
@@ -96,10 +138,11 @@ def armature_impulse(sys: System, inv: rigid.InverseInertia, axes: torch.Tensor,
 
 def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,
                         h: float):
-    """Armature and implicit damping on one substep's force-driven velocity change, for all dofs; ``frames``
-    measured at the substep start. Returns bodies and dof rates ``(D, B)``."""
+    """Armature, implicit damping and dry friction on one substep's force-driven velocity change, for all dofs;
+    ``frames`` measured at the substep start. Returns bodies and dof rates ``(D, B)``."""
     qd = dof_values(sys, frames.qd)
-    after, rates = hinge_rate_solve(sys, after, inv, frames, qd, h * lanes.param(sys.dof_damping, 1))
+    friction_h = h * lanes.param(sys.dof_frictionloss, 1) if sys.dof_friction_hinges.shape[0] else None
+    after, rates = hinge_rate_solve(sys, after, inv, frames, qd, h * lanes.param(sys.dof_damping, 1), friction_h)
     if sys.jnt_has_slides:
         after, qd_slides = slide_inertia_and_damping(sys, before, after, dof_values(sys, frames.axes), qd, inv, h)
         rates = torch.where(lanes.param(sys.dof_is_hinge, 1), rates, qd_slides)

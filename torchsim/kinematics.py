@@ -12,7 +12,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import lanes, spatial
+from torchsim import hinge_anchors, lanes, spatial
 from torchsim.system import System
 
 
@@ -43,6 +43,9 @@ class JointFrames(NamedTuple):
         ang_rel: (3, J, B) child angular velocity relative to the parent, child frame (a ball joint's qvel).
         hinge_dual: (3, 3, J, B) inverse of the hinge axes as columns: row ``hinge_dual[k]`` maps a relative
             rotation (world) onto hinge slot k (measured once here because the joint-space solves need it too).
+        anchor_turn: (3, J, B) velocity of the parent anchor per unit rate of the first hinge (axis ``axes`` slot 3)
+            [m/rad], nonzero for 2 hinges at different anchors (``torchsim.hinge_anchors``); None where the model
+            has no such joint (``System.jnt_has_offsets``).
     """
 
     q: torch.Tensor
@@ -57,6 +60,7 @@ class JointFrames(NamedTuple):
     quat_rel: torch.Tensor
     ang_rel: torch.Tensor
     hinge_dual: torch.Tensor
+    anchor_turn: torch.Tensor | None
 
 
 def with_world(x_pos, x_quat, xd_vel, xd_ang) -> Bodies:
@@ -129,9 +133,13 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     rot0 = spatial.quat_to_mat(quat0) if sys.jnt_has_slides else None
     a2_c = spatial.matvec(child.rot, axes[:, :, 1]) if two or coordinates else None  # a2 turning with the child
     n12 = spatial.normalize(spatial.cross(a1_w, a2_c)) if two else torch.zeros_like(delta)
+    turn = None
+    if sys.jnt_has_offsets:  # the parent anchor turns with the first hinge (only 2-hinge joints have offsets)
+        offset, turn = hinge_anchors.parent_offset(lanes.param(sel(sys.jnt_anchor_offset), 1, 1), a1_w, n12)
+        r_parent, delta = r_parent + offset, delta - offset
     constraint = _constraint_errors(sys, sel, child, quat0, rot0, delta, mode, axes, a1_w, a2_c, n12)
     if not coordinates:
-        return JointFrames(None, None, None, r_parent, r_child, *constraint, None, None, None)
+        return JointFrames(None, None, None, r_parent, r_child, *constraint, None, None, None, turn)
 
     quat_rel = spatial.quat_mul(spatial.quat_conj(quat0), child.quat)
     ang_rel_w = child.ang - parent.ang
@@ -146,7 +154,7 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     return JointFrames(
         torch.cat((q_slide, q_hinge)).movedim(0, -2), torch.cat((qd_slide, qd_hinge)).movedim(0, -2),
         torch.cat((slide_axes, hinge_axes), -2), r_parent, r_child, *constraint,
-        quat_rel, spatial.quat_rotate_inv(child.quat, ang_rel_w), hinge_dual,
+        quat_rel, spatial.quat_rotate_inv(child.quat, ang_rel_w), hinge_dual, turn,
     )
 
 
@@ -247,6 +255,26 @@ def dof_values(sys: System, per_joint: torch.Tensor) -> torch.Tensor:
     return per_joint.flatten(-3, -2).index_select(-2, sys.dof_flat)
 
 
+def dof_angles(sys: System, q_zero: torch.Tensor) -> torch.Tensor:
+    """Dof coordinates ``(D, B)`` (MuJoCo's, from ``ref``) for coordinates ``q_zero (D, B)`` measured from the zero
+    frame, hinge angles in ``(-pi, pi]``.
+
+    Body poses fix a hinge angle only within one turn. A substep reads it in ``(ref - pi, ref + pi]``, or, where
+    that would cut a hinge's range (dm_control's finger: [-1.92, 1.92] about ref -1.57), in a window centred on the
+    range (``System.dof_window_*``), so that limits, springs and servos see the angle the range means."""
+    if not sys.dof_has_windows:
+        return q_zero + lanes.param(sys.dof_ref, 1)
+    return in_window(sys, q_zero, lambda field: lanes.param(field, 1), lanes.param(sys.dof_is_hinge, 1))
+
+
+def in_window(sys: System, q_zero: torch.Tensor, per_row, hinge: torch.Tensor) -> torch.Tensor:
+    """:func:`dof_angles` of rows ``q_zero``; ``per_row`` maps a ``(D,)`` dof field onto the rows (broadcasting with
+    ``q_zero``); rows where ``hinge`` is false (slides, empty slots) get ``q_zero + ref``."""
+    x = q_zero + per_row(sys.dof_window_shift)  # in (-2 pi, 2 pi]: one turn at most takes it into (-pi, pi]
+    x = torch.where(x > torch.pi, x - 2 * torch.pi, torch.where(x <= -torch.pi, x + 2 * torch.pi, x))
+    return torch.where(hinge, per_row(sys.dof_window_centre) + x, q_zero + per_row(sys.dof_ref))
+
+
 def dof_hinge_rows(sys: System, frames: JointFrames) -> torch.Tensor:
     """Each dof's row of its joint's ``hinge_dual`` ``(3, D, B)``: the world direction that maps the joint's relative
     rotation rate onto the dof (a single hinge's axis); meaningful for hinge dofs."""
@@ -267,16 +295,26 @@ def _block(x: torch.Tensor, start: torch.Tensor, width: int) -> torch.Tensor:
     return x.index_select(0, _addresses(start, width)).view(width, start.shape[0], x.shape[-1])
 
 
-def read_q(sys: System, bodies: Bodies, frames: JointFrames):
+def read_q(sys: System, bodies: Bodies, frames: JointFrames, q_near: torch.Tensor):
     """Generalized coordinates ``(nq, B)`` and velocities ``(nv, B)`` in MuJoCo's layout (lanes) from lanes ext
-    body states and their :class:`JointFrames`."""
+    body states and their :class:`JointFrames`.
+
+    Body poses fix a hinge angle only up to whole turns; of those, each hinge takes the one nearest its value in
+    ``q_near (nq, B)`` (the previous step's ``q``, or the ``q`` an env was initialised with), so hinge angles run
+    on continuously through full turns, as MuJoCo's ``qpos`` does.
+    """
     b = bodies.x_pos.shape[-1]
     x_pos, x_quat, xd_vel, ang = (t.index_select(-2, sys.free_body) for t in bodies)
     com = spatial.quat_rotate(x_quat, lanes.param(sys.body_ipos[sys.free_body], 1, 1))
     lin = xd_vel - spatial.cross(ang, com)
     ball = sys.ball_joint
+    dof_q = dof_values(sys, frames.q) + lanes.param(sys.dof_ref, 1)
+    dof_q_near = q_near.index_select(0, sys.dof_qpos)
+    change = dof_q - dof_q_near  # atan2 wraps it to (-pi, pi] in ops the generated step code has (no round)
+    wrapped = dof_q_near + torch.atan2(torch.sin(change), torch.cos(change))
+    dof_q = torch.where(lanes.param(sys.dof_is_hinge, 1), wrapped, dof_q)
     # each part: its addresses and its lanes rows (component-major)
-    q_parts = ((sys.dof_qpos, dof_values(sys, frames.q) + lanes.param(sys.dof_ref, 1)),
+    q_parts = ((sys.dof_qpos, dof_q),
                (_addresses(sys.free_qpos, 7), torch.cat((x_pos - com, x_quat)).flatten(0, 1)),
                (_addresses(sys.ball_qpos, 4), frames.quat_rel.index_select(-2, ball).flatten(0, 1)))
     qd_parts = ((sys.dof_qvel, dof_values(sys, frames.qd)),
@@ -345,6 +383,11 @@ def forward(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
         slide = spatial.matvec(slide_cols, sq[:3])
         slide_rate = spatial.matvec(slide_cols, sqd[:3])
         anchor_zero = xp + spatial.quat_rotate(qp, lanes.param(sys.jnt_anchor_parent[level], 1, 1))
+        if sys.jnt_has_offsets:  # the parent anchor turned with the first hinge (slot 3)
+            offset = lanes.param(sys.jnt_anchor_offset[level], 1, 1)
+            offset, turn = hinge_anchors.zero_frame_offset(offset, axes, sq[3])
+            anchor_zero = anchor_zero + spatial.quat_rotate(quat0, offset)
+            slide_rate = slide_rate + turn * sqd[3]
         anchor = anchor_zero + spatial.quat_rotate(quat0, slide)
         v_anchor = vp + spatial.cross(wp, anchor - xp) + spatial.quat_rotate(quat0, slide_rate)
         xc = anchor - spatial.quat_rotate(qc, lanes.param(sys.jnt_anchor_child[level], 1, 1))

@@ -33,7 +33,7 @@ def init(sys: System, q: torch.Tensor, qd: torch.Tensor) -> State:
     check(sys, "q", q, sys.nq)
     check(sys, "qd", qd, sys.nv, q.shape[0])
     bodies = with_world(*forward(sys, q, qd))
-    q, qd = read_q(sys, bodies, joint_frames(sys, bodies))
+    q, qd = read_q(sys, bodies, joint_frames(sys, bodies), lanes.to_lanes(q))
     n = sys.num_bodies
     return to_public(State(*(x[..., :n, :] for x in bodies), q, qd,
                            torch.zeros(q.shape[-1], dtype=torch.bool, device=q.device)))
@@ -121,7 +121,7 @@ def finish(sys: System, old: State, bodies: Bodies) -> State:
 def finish_lanes(sys: System, old: State, bodies: Bodies) -> State:
     """The lanes State (:func:`to_lanes_state`) after a step from ``old``'s: the moving bodies of ``bodies``,
     ``q, qd`` read back from them, divergence contained."""
-    q, qd = read_q(sys, bodies, joint_frames(sys, bodies))
+    q, qd = read_q(sys, bodies, joint_frames(sys, bodies), old.q)
     n = sys.num_bodies
     return contain_divergence(sys, old, State(*(x[..., :n, :] for x in bodies), q, qd, old.diverged))
 

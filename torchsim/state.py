@@ -15,7 +15,8 @@ class State(NamedTuple):
         x_quat: (B, N, 4) orientation of the body frame (MuJoCo's ``xquat``), unit quaternion ``wxyz``.
         xd_vel: (B, N, 3) linear velocity of the centre of mass, world frame [m/s].
         xd_ang: (B, N, 3) angular velocity, world frame [rad/s].
-        q: (B, nq) generalized coordinates in MuJoCo's ``qpos`` layout (hinge angles wrapped to (-pi, pi]).
+        q: (B, nq) generalized coordinates in MuJoCo's ``qpos`` layout; hinge angles continuous through full
+            turns, as MuJoCo's.
         qd: (B, nv) generalized velocities in MuJoCo's ``qvel`` layout.
         diverged: (B,) bool; set (and kept) once an env's state went non-finite or out of bounds. A diverged
             env is frozen at its last good state until it is re-initialised.

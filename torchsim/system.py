@@ -9,6 +9,8 @@ import torch
 POINTS_PER_PAIR = {
     "sphere_plane": 1, "capsule_plane": 2, "box_plane": 8, "sphere_sphere": 1, "sphere_capsule": 1,
     "capsule_capsule": 1, "sphere_box": 1, "capsule_box": 3, "box_box": 16,
+    "ellipsoid_plane": 1, "cylinder_plane": 8, "sphere_ellipsoid": 1, "sphere_cylinder": 1, "capsule_ellipsoid": 3,
+    "capsule_cylinder": 3, "ellipsoid_ellipsoid": 1, "cylinder_cylinder": 17,
 }
 
 
@@ -32,7 +34,7 @@ class ContactGroup(NamedTuple):
 #: The *batchable* fields of ``System`` and their rank without a batch dimension (contact groups' friction and
 #: margin are batchable too, rank 1).
 BATCHABLE_RANK = {"body_mass": 1, "body_inertia": 3, "dof_damping": 1, "dof_armature": 1, "dof_stiffness": 1,
-                  "dof_springref": 1, "act_gear": 1, "act_gain": 1, "act_bias": 2}
+                  "dof_springref": 1, "dof_frictionloss": 1, "act_gear": 1, "act_gain": 1, "act_bias": 2}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,6 +54,9 @@ class System:
     Joints (one per non-free body; a body's hinges/slides/ball relative to its parent form one joint):
         jnt_child, jnt_parent: (J,).  jnt_anchor_child: (J, 3) anchor from the child COM, child frame.
         jnt_anchor_parent: (J, 3) anchor at q = 0 from the parent COM, parent frame (world frame for the world).
+        jnt_anchor_offset: (J, 3) [m] for 2 hinges at different anchors, the second anchor minus the first in
+            components along a1..a3 (jnt_axes); zero otherwise. jnt_anchor_child is the second anchor, and the
+            parent anchor (the first) turns by this offset with the first hinge (``torchsim.hinge_anchors``).
         jnt_quat0: (J, 4) child frame in the parent frame at q = 0.
         jnt_axes: (J, 3, 3) hinge axes a1..a3 (child frame); unused rows hold padding axes completing a basis.
             The rows are orthonormal (the loader requires a joint's hinges to be mutually orthogonal).
@@ -63,21 +68,52 @@ class System:
         jnt_colors: index tensors partitioning the joints so that no two joints of a colour share a body.
         jnt_levels: index tensors of the joints at each tree depth (free bodies are roots).
         jnt_slot_dof: (J, 6) dof index of each joint slot, -1 where the slot is not a dof.
-        jnt_kinds: 5 bools, which angular modes occur; jnt_has_slides: whether any slide occurs (static structure
-        that lets the step skip work for joint kinds the model lacks).
+        jnt_kinds: 5 bools, which angular modes occur; jnt_has_slides: whether any slide occurs; jnt_has_offsets:
+        whether any joint has a nonzero jnt_anchor_offset (static structure that lets the step skip work for joint
+        kinds the model lacks).
     Dofs (hinge and slide dofs of constrained joints):
         dof_flat: (D,) index into a joint's 6 coordinate slots (3 slides, then 3 hinges), flattened as j*6+slot.
         dof_is_hinge: (D,) bool.  dof_qpos, dof_qvel: (D,) addresses in qpos/qvel.
         dof_limited: (D,) bool.  dof_range: (D, 2).  dof_ref: (D,) MuJoCo qpos0 (the coordinate of the zero frame).
+        dof_window_centre, dof_window_shift: (D,) the window ``(centre - pi, centre + pi]`` in which a substep reads
+        a hinge angle, and ``ref - centre`` less whole turns (``kinematics.dof_angles``); dof_has_windows: whether
+        any window is off ``ref`` (a range reaching past half a turn from it).
         dof_damping, dof_armature, dof_stiffness, dof_springref: (D,), batchable.
+        dof_frictionloss: (D,) largest dry-friction force [N m | N] (MuJoCo ``frictionloss``), batchable; which dofs
+        have friction is static structure decided at load: dof_friction_hinges (F,) the hinge dofs with nonzero
+        frictionloss, dof_friction_slides whether any slide dof has it (a per-env value elsewhere is ignored).
         ball_joint, ball_qpos, ball_qvel: (nball,) ball joints and their addresses.
         free_body, free_qpos, free_qvel: (nfree,) free-floating bodies and their addresses.
     Actuators (MuJoCo ``gaintype=fixed``, ``biastype=none|affine``, joint transmission):
         act_dof: (U,) dof index.  act_gear, act_gain: (U,), batchable.  act_bias: (U, 3), batchable.
         act_ctrl_range, act_force_range: (U, 2); act_ctrl_limited, act_force_limited: (U,) bool.
+        act_tendon: (U,) tendon of an actuator with tendon transmission (its act_dof is -1), -1 for joint ones.
+    Fixed tendons (``T`` tendons of ``K`` joint terms, length ``L = sum_k coef_k q_k`` [m | rad]):
+        ten_wrap_tendon, ten_wrap_dof: (K,) each term's tendon and dof.  ten_wrap_coef: (K,).
+        ten_stiffness: (T,) [N/m | N m/rad].  ten_damping: (T,) [N s/m].  ten_lengthspring: (T, 2) the spring's
+        dead band (no force while ``lo <= L <= hi``).  ten_limited: (T,) bool.  ten_range: (T, 2).
+        ten_margin: (T,) [m | rad].  ten_solimp: (T, 5) the limits' MuJoCo ``solimp``.  ten_limit_gains: (T, 2)
+        MuJoCo's reference-acceleration gains ``K`` [1/s^2], ``B`` [1/s] from the limits' ``solref``.
+        ten_invweight: (T,) [1/kg | 1/(kg m^2)] MuJoCo's tendon inverse inertia at ``qpos0`` (``tendon_invweight0``).
+        ten_springs, ten_limits, act_on_tendons: whether any tendon has stiffness or damping, any a limit, any
+        actuator tendon transmission (static structure: a model without them skips their work).
+    Equality constraints (``E`` active MuJoCo ``<equality><tendon>``/``<joint>``, ``torchsim.equality``; each has two
+    sides, rows ``e`` and ``E + e``, linear in the dof coordinates over ``K`` terms):
+        eq_wrap_side, eq_wrap_dof: (K,) each term's side row and dof.  eq_wrap_coef: (K,).
+        eq_ref: (E, 2) the sides at ``qpos0``.  eq_polycoef: (E, 5) MuJoCo's ``polycoef`` (``a1..a4`` zero
+        without a second side).  eq_solimp: (E, 5).  eq_gains: (E, 2) ``K`` [1/s^2], ``B`` [1/s] from ``solref``.
+        eq_invweight: (E,) MuJoCo's inverse inertia of the constraint at ``qpos0``.
+        eq_constraints: whether there are any (static structure: a model without them skips their work).
     Geometry and contacts:
         geom_body: (G,) ext body index.  geom_pos, geom_quat: (G, 3), (G, 4) from the body COM in the body frame
         (world frame for static geoms).  geom_size: (G, 3) MuJoCo sizes.  contact_groups: one per shape pair.
+    Fluid (MuJoCo's inertia-box model, ``torchsim.fluid``; ``E`` elements, one per moving MuJoCo body with mass):
+        fluid: whether the model has a fluid (``density`` or ``viscosity`` > 0; static structure: without it the
+        step does no fluid work).  fluid_body: (E,) the ext body carrying each element.
+        fluid_pos: (E, 3) the element's centre (its MuJoCo body's COM) from the body COM, body frame [m].
+        fluid_rot: (E, 3, 3) the element's box axes (columns: its MuJoCo body's principal axes), body frame.
+        fluid_damping: (E, 6) viscous coefficients on the box-frame (angular, linear) velocity [N m s, N s/m].
+        fluid_drag: (E, 6) quadratic drag coefficients on the same [N m s^2, N s^2/m^2].  fluid_wind: (3,) [m/s].
     MuJoCo bodies (for poses of fused bodies, e.g. rendering): mjbody_body (nbody,) ext index;
         mjbody_pos, mjbody_quat: frame offset of each MuJoCo body in its fused body's frame.
     """
@@ -113,6 +149,7 @@ class System:
     jnt_parent: torch.Tensor
     jnt_anchor_child: torch.Tensor
     jnt_anchor_parent: torch.Tensor
+    jnt_anchor_offset: torch.Tensor
     jnt_quat0: torch.Tensor
     jnt_axes: torch.Tensor
     jnt_mode: torch.Tensor
@@ -125,6 +162,7 @@ class System:
     jnt_slot_dof: torch.Tensor
     jnt_kinds: tuple
     jnt_has_slides: bool
+    jnt_has_offsets: bool
     # dofs
     dof_flat: torch.Tensor
     dof_is_hinge: torch.Tensor
@@ -137,6 +175,12 @@ class System:
     dof_stiffness: torch.Tensor
     dof_springref: torch.Tensor
     dof_ref: torch.Tensor
+    dof_window_centre: torch.Tensor
+    dof_window_shift: torch.Tensor
+    dof_has_windows: bool
+    dof_frictionloss: torch.Tensor
+    dof_friction_hinges: torch.Tensor
+    dof_friction_slides: bool
     ball_joint: torch.Tensor
     ball_qpos: torch.Tensor
     ball_qvel: torch.Tensor
@@ -152,12 +196,47 @@ class System:
     act_ctrl_limited: torch.Tensor
     act_force_range: torch.Tensor
     act_force_limited: torch.Tensor
+    act_tendon: torch.Tensor
+    # fixed tendons
+    ten_wrap_tendon: torch.Tensor
+    ten_wrap_dof: torch.Tensor
+    ten_wrap_coef: torch.Tensor
+    ten_stiffness: torch.Tensor
+    ten_damping: torch.Tensor
+    ten_lengthspring: torch.Tensor
+    ten_limited: torch.Tensor
+    ten_range: torch.Tensor
+    ten_margin: torch.Tensor
+    ten_solimp: torch.Tensor
+    ten_limit_gains: torch.Tensor
+    ten_invweight: torch.Tensor
+    ten_springs: bool
+    ten_limits: bool
+    act_on_tendons: bool
+    # equality constraints
+    eq_wrap_side: torch.Tensor
+    eq_wrap_dof: torch.Tensor
+    eq_wrap_coef: torch.Tensor
+    eq_ref: torch.Tensor
+    eq_polycoef: torch.Tensor
+    eq_solimp: torch.Tensor
+    eq_gains: torch.Tensor
+    eq_invweight: torch.Tensor
+    eq_constraints: bool
     # geometry
     geom_body: torch.Tensor
     geom_pos: torch.Tensor
     geom_quat: torch.Tensor
     geom_size: torch.Tensor
     contact_groups: tuple
+    # fluid
+    fluid: bool
+    fluid_body: torch.Tensor
+    fluid_pos: torch.Tensor
+    fluid_rot: torch.Tensor
+    fluid_damping: torch.Tensor
+    fluid_drag: torch.Tensor
+    fluid_wind: torch.Tensor
     # MuJoCo body frames
     mjbody_body: torch.Tensor
     mjbody_pos: torch.Tensor

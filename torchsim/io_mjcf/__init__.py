@@ -4,15 +4,31 @@ Supported subset (anything else raises ``UnsupportedMJCFError`` naming the eleme
 is harmless):
 - bodies: any tree; bodies without joints are fused into their parent (mass, COM and inertia combined).
 - joints per body: one ``free`` (top-level bodies), one ``ball`` (no limit), or up to 3 ``slide`` followed by up
-  to 3 ``hinge`` sharing one anchor (2 hinges: orthogonal axes; 3 hinges: mutually orthogonal axes).
+  to 3 ``hinge`` (2 hinges: orthogonal axes; 3 hinges: mutually orthogonal axes). The hinges share one anchor
+  (``pos``), except that a body with 2 hinges and no slides may give them different anchors
+  (``torchsim.hinge_anchors``).
   ``range``, ``damping``, ``armature``, ``stiffness``/``springref`` and ``ref`` on hinges and slides.
+  ``frictionloss`` on hinges and slides (not on free or ball joints, nor on tendons).
+- hinge angles run on through full turns in ``q`` (MuJoCo's ``qpos``); a hinge whose range is wider than a turn,
+  or an unlimited one driving a spring, tendon, equality or servo, is accepted with a warning
+  (``subset.warn_turning_hinges``).
 - actuators: joint transmission, no activation dynamics, ``gaintype="fixed"``, ``biastype="none"|"affine"``
   (covers ``motor``, ``position`` and ``velocity``), with ``gear``, ``ctrlrange`` and ``forcerange``.
-- contact geoms: ``plane`` (static), ``sphere``, ``capsule``, ``box``; pairs from ``contype``/``conaffinity``,
+- tendons: ``<fixed>`` over hinges and slides, with ``stiffness``, ``springlength``, ``damping``,
+  ``limited``/``range`` (soft, ``solreflimit``/``solimplimit``), and actuators with tendon transmission.
+- equality constraints: ``<tendon>`` (fixed tendons) and ``<joint>`` (hinges, slides) with ``polycoef``, ``solref``,
+  ``solimp``, as soft constraint forces (``torchsim.equality``); inactive ones do nothing; ``connect``, ``weld``
+  and flex constraints are refused.
+- contact geoms: ``plane`` (static), ``sphere``, ``capsule``, ``box``, ``ellipsoid``, ``cylinder`` (against planes,
+  spheres and capsules, ellipsoid-ellipsoid and cylinder-cylinder, see ``torchsim.collision_round``;
+  ellipsoid-cylinder and either against a box are refused); pairs from ``contype``/``conaffinity``,
   ``<exclude>``, ``<contact><pair>`` and MuJoCo's parent filter. Geoms of other types that can never touch
   anything (``contype``/``conaffinity`` filtered out) only contribute mass and are accepted with a warning.
+- fluid: ``<option density viscosity wind>`` with MuJoCo's inertia-box model (``torchsim.fluid``); geoms with
+  ``fluidshape="ellipsoid"`` are refused.
 
-One module per part of the model: ``subset`` (the checks), ``bodies``, ``joints``, ``actuators``, ``geoms``.
+One module per part of the model: ``subset`` (the checks), ``bodies``, ``joints``, ``actuators``, ``geoms``,
+``tendons``, ``equality``, ``fluid``.
 """
 
 import os
@@ -23,9 +39,12 @@ import torch
 
 from torchsim.io_mjcf.actuators import actuator_fields
 from torchsim.io_mjcf.bodies import fuse_bodies
+from torchsim.io_mjcf.equality import equality_fields
+from torchsim.io_mjcf.fluid import fluid_fields
 from torchsim.io_mjcf.geoms import geom_fields
 from torchsim.io_mjcf.joints import joint_fields
-from torchsim.io_mjcf.subset import UnsupportedMJCFError, check_supported
+from torchsim.io_mjcf.subset import UnsupportedMJCFError, check_supported, warn_turning_hinges
+from torchsim.io_mjcf.tendons import tendon_fields
 from torchsim.methods import METHODS
 from torchsim.system import System
 
@@ -68,10 +87,12 @@ def load_mjcf(
         raise ValueError(f"unknown method {method!r}; expected one of {tuple(METHODS)}")
     m = _compile(source)
     check_supported(m)
+    warn_turning_hinges(m)
     substeps = substeps or max(1, int(np.ceil(m.opt.timestep / METHODS[method].default_substep_timestep - 1e-9)))
     fused, fields = fuse_bodies(m)
     joints, jnt_dof = joint_fields(m, fused)
     fields |= joints | actuator_fields(m, jnt_dof) | geom_fields(m, fused)
+    fields |= tendon_fields(m, jnt_dof) | equality_fields(m, jnt_dof) | fluid_fields(m, fused)
     gravity = m.opt.gravity * (0.0 if m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_GRAVITY) else 1.0)
     sys = System(
         nq=m.nq, nv=m.nv, nu=m.nu, timestep=float(m.opt.timestep), substeps=int(substeps), method=method,

@@ -9,13 +9,15 @@ import torch
 from torchsim.collision import SHAPE_RANK
 from torchsim.io_mjcf.bodies import FusedBodies, compose
 from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
-from torchsim.system import ContactGroup
+from torchsim.system import POINTS_PER_PAIR, ContactGroup
 
 SHAPE_NAME = {
     int(mujoco.mjtGeom.mjGEOM_PLANE): "plane",
     int(mujoco.mjtGeom.mjGEOM_SPHERE): "sphere",
     int(mujoco.mjtGeom.mjGEOM_CAPSULE): "capsule",
     int(mujoco.mjtGeom.mjGEOM_BOX): "box",
+    int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid",
+    int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinder",
 }
 
 
@@ -38,10 +40,15 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies) -> dict:
             raise UnsupportedMJCFError(
                 f"geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, bad)!r} of type "
                 f"{mujoco.mjtGeom(m.geom_type[bad]).name} can collide; contact geoms must be plane, sphere, "
-                "capsule or box (set contype/conaffinity to 0 for visual-only geoms)")
+                "capsule, box, ellipsoid or cylinder (set contype/conaffinity to 0 for visual-only geoms)")
         if names.count("plane") == 1 and m.body_weldid[m.geom_bodyid[g1 if names[0] == "plane" else g2]] != 0:
             raise UnsupportedMJCFError("planes must belong to the world body")
         (ga, na), (gb, nb) = sorted(((g1, names[0]), (g2, names[1])), key=lambda x: SHAPE_RANK[x[1]])
+        if f"{na}_{nb}" not in POINTS_PER_PAIR:
+            geom_a, geom_b = (name(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in (ga, gb))
+            raise UnsupportedMJCFError(
+                f"geoms {geom_a!r} ({na}) and {geom_b!r} ({nb}) can collide, and {na}-{nb} contacts are not "
+                "implemented; exclude the pair or set contype/conaffinity so that they cannot touch")
         groups.setdefault(f"{na}_{nb}", []).append((ga, gb, friction, margin))
     for g in range(m.ngeom):
         if int(m.geom_type[g]) not in SHAPE_NAME and (m.geom_contype[g] or m.geom_conaffinity[g]):

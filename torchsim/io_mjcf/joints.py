@@ -14,13 +14,13 @@ from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
 _FREE, _BALL, _SLIDE, _HINGE = (int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL),
                                 int(mujoco.mjtJoint.mjJNT_SLIDE), int(mujoco.mjtJoint.mjJNT_HINGE))
 #: per-joint fields (``jnt_*``) and the shape of one joint's value; ``child`` and ``parent`` are body indices
-JOINT_SHAPES = {"child": (), "parent": (), "anchor_child": (3,), "anchor_parent": (3,), "quat0": (4,),
-                "axes": (3, 3), "mode": (5,), "a2_sign": (), "slide_axes": (3, 3), "slide_pinv": (3, 3),
+JOINT_SHAPES = {"child": (), "parent": (), "anchor_child": (3,), "anchor_parent": (3,), "anchor_offset": (3,),
+                "quat0": (4,), "axes": (3, 3), "mode": (5,), "a2_sign": (), "slide_axes": (3, 3), "slide_pinv": (3, 3),
                 "lin_proj": (3, 3)}
 #: per-dof fields (``dof_*``) and their dtypes
 DOF_DTYPES = {"flat": np.int64, "is_hinge": bool, "qpos": np.int64, "qvel": np.int64, "limited": bool,
               "range": float, "damping": float, "armature": float, "stiffness": float, "springref": float,
-              "ref": float}
+              "ref": float, "frictionloss": float, "window_centre": float, "window_shift": float}
 
 
 def joint_fields(m: mujoco.MjModel, fused: FusedBodies) -> tuple[dict, dict]:
@@ -53,6 +53,9 @@ def _check_joints(m, b, jids) -> str:
         if types[0] in (_FREE, _BALL) and (m.dof_damping[m.jnt_dofadr[j]] or m.dof_armature[m.jnt_dofadr[j]]
                                            or m.jnt_stiffness[j]):
             raise UnsupportedMJCFError(f"damping/armature/stiffness on the free or ball joint of body {body!r}")
+        if types[0] in (_FREE, _BALL) and m.dof_frictionloss[m.jnt_dofadr[j]]:
+            raise UnsupportedMJCFError(f"frictionloss on the free or ball joint of body {body!r} is not supported "
+                                       "(only on hinge and slide joints)")
     if types == [_FREE]:
         if m.body_weldid[m.body_parentid[b]] != 0:
             raise UnsupportedMJCFError(f"free joint of body {body!r} is not on a top-level body")
@@ -68,8 +71,12 @@ def _check_joints(m, b, jids) -> str:
             "one ball, or up to 3 slides followed by up to 3 hinges")
     hinges = [j for j in jids if m.jnt_type[j] == _HINGE]
     axes = _unit_axes(m, hinges)
-    if hinges and any(np.linalg.norm(m.jnt_pos[j] - m.jnt_pos[hinges[0]]) > 1e-9 for j in hinges):
-        raise UnsupportedMJCFError(f"hinges of body {body!r} must share one anchor (pos)")
+    # 2 hinges may have different anchors (torchsim.hinge_anchors), unless after slides; 3 hinges must share one
+    if len(hinges) == 2 and _anchor_offset(m, hinges).any() and n_slide:
+        raise UnsupportedMJCFError(f"hinges of body {body!r} at different anchors (pos) after slide joints are not "
+                                   "supported")
+    if len(hinges) == 3 and any(np.linalg.norm(m.jnt_pos[j] - m.jnt_pos[hinges[0]]) > 1e-9 for j in hinges):
+        raise UnsupportedMJCFError(f"the 3 hinges of body {body!r} must share one anchor (pos); 2 hinges may differ")
     if len(axes) >= 2 and any(abs(axes[i] @ axes[k]) > 1e-6 for i in range(len(axes)) for k in range(i)):
         raise UnsupportedMJCFError(f"the {len(axes)} hinge axes of body {body!r} must be mutually orthogonal")
     return "slides_hinges"
@@ -79,14 +86,26 @@ def _unit_axes(m, jids) -> list:
     return [m.jnt_axis[j] / np.linalg.norm(m.jnt_axis[j]) for j in jids]
 
 
+def _anchor_offset(m, hinges) -> np.ndarray:
+    """The second hinge's anchor minus the first's (body frame) [m] for 2 ``hinges``, exact zeros within 1e-9
+    (so a model whose hinges share their anchors is flagged as such, ``System.jnt_has_offsets``); else zeros."""
+    if len(hinges) != 2:
+        return np.zeros(3)
+    d = m.jnt_pos[hinges[1]] - m.jnt_pos[hinges[0]]
+    return d if np.linalg.norm(d) > 1e-9 else np.zeros(3)
+
+
 def _joint(m, b, jids, fused: FusedBodies, is_ball: bool) -> dict:
     """One torchsim joint's values (``JOINT_SHAPES``) for body ``b`` and its MuJoCo joints ``jids``."""
     hinge_axes = _unit_axes(m, [j for j in jids if m.jnt_type[j] == _HINGE])
     slides = _unit_axes(m, [j for j in jids if m.jnt_type[j] == _SLIDE])
     com = fused.com[fused.index[b]]
-    # the anchor is the hinge/ball pivot; a slide-only joint may use any child point, so take the COM
-    pivot = [j for j in jids if m.jnt_type[j] == _HINGE][:1] or (jids if is_ball else [])
+    # the anchor is the hinge/ball pivot; a slide-only joint may use any child point, so take the COM. With 2
+    # hinges at different anchors the child's anchor is the second one, the parent's the first (hinge_anchors)
+    hinges = [j for j in jids if m.jnt_type[j] == _HINGE]
+    pivot = hinges[:1] or (jids if is_ball else [])
     anchor = m.jnt_pos[pivot[0]] if pivot else com
+    offset = _anchor_offset(m, hinges)
     parent = m.body_parentid[b]
     pos0, quat0 = compose(*fused.frame[parent], m.body_pos[b], m.body_quat[b])
     slide_cols = np.zeros((3, 3))
@@ -95,7 +114,8 @@ def _joint(m, b, jids, fused: FusedBodies, is_ball: bool) -> dict:
     slide_pinv[: len(slides)] = np.linalg.pinv(slide_cols[:, : len(slides)]) if slides else np.zeros((0, 3))
     return dict(
         child=fused.index[b], parent=fused.body_of(m, parent),
-        anchor_child=anchor - com, anchor_parent=pos0 + quat_mat(quat0) @ anchor - fused.com_of(m, parent),
+        anchor_child=anchor + offset - com, anchor_parent=pos0 + quat_mat(quat0) @ anchor - fused.com_of(m, parent),
+        anchor_offset=_hinge_basis(hinge_axes) @ offset if hinge_axes else offset,
         quat0=quat0, axes=np.eye(3) if is_ball or not hinge_axes else _hinge_basis(hinge_axes),
         mode=np.eye(5)[4 if is_ball else len(hinge_axes)],
         # +-1: the handedness of 3 hinge axes
@@ -118,10 +138,17 @@ def _hinge_basis(axes: list) -> np.ndarray:
 def _dof(m, j, joint: int, slot: int) -> dict:
     """One dof's values (``DOF_DTYPES``, and its joint) for MuJoCo joint ``j`` in ``slot`` of torchsim ``joint``."""
     qpos, qvel = m.jnt_qposadr[j], m.jnt_dofadr[j]
+    ref, (lo, hi) = m.qpos0[qpos], m.jnt_range[j]
+    # the angle window of a substep's hinge angle (kinematics.dof_angles): (ref - pi, ref + pi], or centred on the
+    # range where that window would cut it
+    centre = ref
+    if m.jnt_type[j] == _HINGE and m.jnt_limited[j] and (lo <= ref - np.pi or hi > ref + np.pi):
+        centre = 0.5 * (lo + hi)
+    shift = ref - centre - 2 * np.pi * np.round((ref - centre) / (2 * np.pi))
     return dict(flat=joint * 6 + slot, is_hinge=m.jnt_type[j] == _HINGE, qpos=qpos, qvel=qvel,
                 limited=bool(m.jnt_limited[j]), range=m.jnt_range[j], damping=m.dof_damping[qvel],
                 armature=m.dof_armature[qvel], stiffness=m.jnt_stiffness[j], springref=m.qpos_spring[qpos],
-                ref=m.qpos0[qpos], jnt=joint)
+                ref=ref, frictionloss=m.dof_frictionloss[qvel], window_centre=centre, window_shift=shift, jnt=joint)
 
 
 def _tensors(joints: list, dofs: list, ball: list, free: list, num_bodies: int) -> dict:
@@ -143,6 +170,11 @@ def _tensors(joints: list, dofs: list, ball: list, free: list, num_bodies: int) 
     out["jnt_slot_dof"] = torch.as_tensor(slot_dof.reshape(-1, 6))
     out["jnt_kinds"] = tuple(bool(k) for k in out["jnt_mode"].numpy().any(0))
     out["jnt_has_slides"] = bool(out["jnt_slide_axes"].any())
+    out["jnt_has_offsets"] = bool(out["jnt_anchor_offset"].any())
+    out["dof_has_windows"] = bool((out["dof_window_centre"] != out["dof_ref"]).any())
+    frictional = out["dof_frictionloss"] != 0
+    out["dof_friction_hinges"] = torch.nonzero(frictional & out["dof_is_hinge"]).reshape(-1)
+    out["dof_friction_slides"] = bool((frictional & ~out["dof_is_hinge"]).any())
     for prefix, first, rows in (("ball", "joint", ball), ("free", "body", free)):
         for i, k in enumerate((first, "qpos", "qvel")):
             out[f"{prefix}_{k}"] = torch.as_tensor(np.array([r[i] for r in rows], dtype=np.int64))

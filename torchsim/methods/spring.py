@@ -16,10 +16,11 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import integrator, joint_space, lanes, spatial, rigid
+from torchsim import hinge_anchors, integrator, joint_space, lanes, spatial, rigid
 from torchsim.actuators import dof_forces
 from torchsim.collision import contacts
-from torchsim.kinematics import Bodies, JointFrames, dof_values, joint_frames
+from torchsim.fluid import fluid_wrench
+from torchsim.kinematics import Bodies, JointFrames, dof_angles, dof_values, joint_frames
 from torchsim.methods._method import Method
 from torchsim.system import System
 
@@ -66,7 +67,11 @@ def joint_gain(sys: System, fr: JointFrames, inv: rigid.InverseInertia) -> torch
     m, i = rigid.gather(inv, ends)
     m, i = m.unflatten(-2, (2, -1)), i.unflatten(-2, (2, -1))  # (2, J, 1 | B), (3, 3, 2, J, B): child, parent
     r = torch.stack((fr.r_child, fr.r_parent), 1)
-    k_lin = m.sum(-3) * spatial.eye3(m, 2) - spatial.skew_sandwich(r, i).sum(-3)
+    if sys.jnt_has_offsets:  # an anchor turning with the first hinge adds to the lever (torchsim.hinge_anchors)
+        lever = hinge_anchors.lever(r, fr.anchor_turn.unsqueeze(1), fr.axes[:, :, 3].unsqueeze(1))
+        k_lin = m.sum(-3) * spatial.eye3(m, 2) + spatial.mm(lever, i, spatial.transpose(lever)).sum(-3)
+    else:
+        k_lin = m.sum(-3) * spatial.eye3(m, 2) - spatial.skew_sandwich(r, i).sum(-3)
     return _joint_gains(sys, k_lin, i.sum(-3), fr)
 
 
@@ -85,9 +90,15 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tenso
     vel, ang = vel.unflatten(-2, (2, -1)), ang.unflatten(-2, (2, -1))
     twist = torch.stack((vel + spatial.cross(ang, r), ang), 1)  # (3, lin/ang, child/parent, J, B) at the anchor
     rate = twist[:, :, 0] - twist[:, :, 1]
+    if sys.jnt_has_offsets:  # the parent anchor also moves as the first hinge turns (torchsim.hinge_anchors)
+        a1 = fr.axes[:, :, 3]
+        turn_rate = hinge_anchors.turn_rate(fr.anchor_turn, a1, ang[:, 0], ang[:, 1])
+        rate = torch.stack((rate[:, 0] - turn_rate, rate[:, 1]), 1)
     err = torch.stack((fr.lin_err, fr.ang_err), 1)
     kappa, zeta = sys.joint_stiffness / (h * h), sys.joint_damping / h
     force, torque = (-spatial.matvec(gain, kappa * err + zeta * rate)).unbind(1)
+    if sys.jnt_has_offsets:
+        torque = torque + hinge_anchors.turn_moment(fr.anchor_turn, a1, force)
     moment = spatial.cross(r, force.unsqueeze(1)) + torque.unsqueeze(1)  # about each body's COM
     wrench = torch.cat((force.unsqueeze(1).expand_as(moment), moment))  # (6, child/parent, J, B)
     zero = bodies.x_pos.new_zeros((6,) + bodies.x_pos.shape[1:])
@@ -137,7 +148,7 @@ def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, limit_inv_mas
     """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of the dofs' generalized forces: actuators, passive springs
     and limits, for dof ``axes (3, D, B)``, ``ctrl (U, B)`` and the dofs' inverse inertias ``limit_inv_mass (D, B)``
     (the limit springs' gains)."""
-    q, qd = dof_values(sys, fr.q) + lanes.param(sys.dof_ref, 1), dof_values(sys, fr.qd)
+    q, qd = dof_angles(sys, dof_values(sys, fr.q)), dof_values(sys, fr.qd)
     tau = dof_forces(sys, q, qd, ctrl) + limit_forces(sys, q, qd, limit_inv_mass, h)
     return rigid.dof_wrench(sys, bodies, axes, tau)
 
@@ -180,6 +191,9 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     axes = dof_values(sys, fr.axes)
     force, torque = dof_force_wrench(sys, bodies, fr, terms.limit_inv_mass, axes, ctrl, h)
     spring_force, spring_torque = joint_wrench(sys, bodies, fr, terms.joint_gain, h)
+    if sys.fluid:
+        fluid_force, fluid_torque = fluid_wrench(sys, bodies, inv.rot)
+        force, torque = force + fluid_force, torque + fluid_torque
     after = integrator.velocity_update(sys, bodies, inv, force + spring_force, torque + spring_torque, h)
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
     if sys.contact_groups:

@@ -8,14 +8,19 @@ positional Coulomb friction: the substep's tangential slip is undone up to ``mu`
 Velocities are then the substep's displacement over ``h``; armature gets its share of the projection's effect at
 velocity level (``joint_space``), which is first order in ``h``: with armature much heavier than the links it
 drives (the ant), the projection's bare-inertia displacements dominate and the ant settles too low (see the tests).
+Joint dry friction (``frictionloss``) acts with armature and damping on the predicted rates, as a torque on the
+bodies; the projection then turns a link's linear momentum about its pivot into rotation the friction did not see,
+so a held hinge creeps at about ``tau h / I_com`` (``tau`` the torque it holds, ``I_com`` the link's inertia about
+its own COM): 2.6x MuJoCo's soft-friction creep for a pendulum at h = 0.5 ms (``tests/test_frictionloss.py``).
 """
 
 import torch
 
-from torchsim import integrator, joint_space, lanes, spatial, rigid
+from torchsim import hinge_anchors, integrator, joint_space, lanes, spatial, rigid
 from torchsim.actuators import dof_forces
 from torchsim.collision import contacts
-from torchsim.kinematics import Bodies, dof_values, joint_frames
+from torchsim.fluid import fluid_wrench
+from torchsim.kinematics import Bodies, dof_angles, dof_values, in_window, joint_frames
 from torchsim.methods._method import Method
 from torchsim.system import System
 
@@ -36,15 +41,26 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         m_p, i_p = rigid.gather(inv, parent)
         r_c, r_p = fr.r_child, fr.r_parent
         eye = spatial.eye3(m_c, 2)
-        k_ll = (m_c + m_p) * eye - spatial.skew_sandwich(r_c, i_c) - spatial.skew_sandwich(r_p, i_p)
-        k_la = -(spatial.skew_mm(r_c, i_c) + spatial.skew_mm(r_p, i_p))
+        if sys.jnt_has_offsets:  # an anchor turning with the first hinge adds to the levers (torchsim.hinge_anchors)
+            a1 = fr.axes[:, :, 3]
+            l_c, l_p = (hinge_anchors.lever(r, fr.anchor_turn, a1) for r in (r_c, r_p))
+            k_ll = ((m_c + m_p) * eye + spatial.mm(l_c, i_c, spatial.transpose(l_c))
+                    + spatial.mm(l_p, i_p, spatial.transpose(l_p)))
+            k_la = spatial.mm(l_c, i_c) + spatial.mm(l_p, i_p)
+        else:  # the levers are -[r]x
+            k_ll = (m_c + m_p) * eye - spatial.skew_sandwich(r_c, i_c) - spatial.skew_sandwich(r_p, i_p)
+            k_la = -(spatial.skew_mm(r_c, i_c) + spatial.skew_mm(r_p, i_p))
         k_aa = i_c + i_p
 
         # rotation rows in hinge-slot coordinates: the 3 hinge slots as a vector (3, K, B)
         slot_dof = lanes.param(sys.jnt_slot_dof[colour][:, 3:], 1, 1)
         has_dof = slot_dof >= 0
         dof = slot_dof.clamp_min(0)
-        q = fr.q[:, 3:].movedim(1, 0) + torch.where(has_dof, sys.dof_ref[dof], 0.0)
+        q = fr.q[:, 3:].movedim(1, 0)
+        if sys.dof_has_windows:  # static: a range reaching past half a turn from ref (kinematics.dof_angles)
+            q = in_window(sys, q, lambda field: field[dof], has_dof)
+        else:
+            q = q + torch.where(has_dof, sys.dof_ref[dof], 0.0)
         lo, hi = sys.dof_range[dof].unbind(-1)
         violation = torch.where(has_dof & sys.dof_limited[dof], torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0), 0.0)
         mode = lanes.param(sys.jnt_mode[colour], 1, 1)
@@ -64,8 +80,10 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         rhs_l, rhs_s = -fr.lin_err, -mask * error
         mu = spatial.matvec(spatial.inv3(c - spatial.mm(bt_ainv, b)), rhs_s - spatial.matvec(bt_ainv, rhs_l))
         p_lin = spatial.matvec(a_inv, rhs_l - spatial.matvec(b, mu))
-        bodies = rigid.apply_pair_position(bodies, inv, child, parent, fr.r_child, fr.r_parent, p_lin,
-                                           spatial.matvec(gt, mu))
+        p_ang = spatial.matvec(gt, mu)
+        if sys.jnt_has_offsets:
+            p_ang = p_ang + hinge_anchors.turn_moment(fr.anchor_turn, a1, p_lin)
+        bodies = rigid.apply_pair_position(bodies, inv, child, parent, fr.r_child, fr.r_parent, p_lin, p_ang)
     return bodies
 
 
@@ -143,8 +161,11 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
     fr = joint_frames(sys, bodies, all_slots=False, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
-    q, qd = dof_values(sys, fr.q) + lanes.param(sys.dof_ref, 1), dof_values(sys, fr.qd)
+    q, qd = dof_angles(sys, dof_values(sys, fr.q)), dof_values(sys, fr.qd)
     force, torque = rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, qd, ctrl))
+    if sys.fluid:
+        fluid_force, fluid_torque = fluid_wrench(sys, bodies, inv.rot)
+        force, torque = force + fluid_force, torque + fluid_torque
     after = integrator.velocity_update(sys, bodies, inv, force, torque, h)
     after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
     q_pred = q + h * qd_pred
