@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
-from torchsim.io_mjcf.tendons import solref_gains
+from torchsim.io_mjcf.tendons import solref_gains, wrap_columns
 
 
 def equality_fields(m: mujoco.MjModel, jnt_dof: dict) -> dict:
@@ -37,12 +37,8 @@ def equality_fields(m: mujoco.MjModel, jnt_dof: dict) -> dict:
     polycoef = m.eq_data[kept, :5].reshape(n, 5).copy()
     polycoef[m.eq_obj2id[kept] < 0, 1:] = 0.0  # one side: r = x1 - a0
     solref, solimp = m.eq_solref[kept].reshape(n, 2), m.eq_solimp[kept].reshape(n, 5)
-
-    def column(k, dtype):
-        return torch.as_tensor(np.array([w[k] for w in wraps], dtype=dtype))
-
     return dict(
-        eq_wrap_side=column(0, np.int64), eq_wrap_dof=column(1, np.int64), eq_wrap_coef=column(2, float),
+        zip(("eq_wrap_side", "eq_wrap_dof", "eq_wrap_coef"), wrap_columns(wraps)),
         eq_ref=torch.as_tensor(ref), eq_polycoef=torch.as_tensor(polycoef),
         eq_solimp=torch.as_tensor(solimp.copy()), eq_gains=torch.as_tensor(solref_gains(m, solref, solimp)),
         eq_invweight=torch.as_tensor(invweight), eq_constraints=n > 0,

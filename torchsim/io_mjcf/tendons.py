@@ -21,12 +21,8 @@ def tendon_fields(m: mujoco.MjModel, jnt_dof: dict) -> dict:
             wraps.append((t, jnt_dof[m.wrap_objid[w]], m.wrap_prm[w]))
     is_tendon = m.actuator_trntype == int(mujoco.mjtTrn.mjTRN_TENDON)
     limited = m.tendon_limited.astype(bool)
-
-    def column(i, dtype):
-        return torch.as_tensor(np.array([w[i] for w in wraps], dtype=dtype))
-
     return dict(
-        ten_wrap_tendon=column(0, np.int64), ten_wrap_dof=column(1, np.int64), ten_wrap_coef=column(2, float),
+        zip(("ten_wrap_tendon", "ten_wrap_dof", "ten_wrap_coef"), wrap_columns(wraps)),
         ten_stiffness=torch.as_tensor(m.tendon_stiffness.copy()),
         ten_damping=torch.as_tensor(m.tendon_damping.copy()),
         ten_lengthspring=torch.as_tensor(m.tendon_lengthspring.copy()),
@@ -39,6 +35,13 @@ def tendon_fields(m: mujoco.MjModel, jnt_dof: dict) -> dict:
         ten_limits=bool(limited.any()), act_on_tendons=bool(is_tendon.any()),
         act_tendon=torch.as_tensor(np.where(is_tendon, m.actuator_trnid[:, 0], -1), dtype=torch.long),
     )
+
+
+def wrap_columns(wraps: list) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Rows ``(W,)``, dofs ``(W,)`` and coefficients ``(W,)`` of ``(row, dof, coef)`` terms: linear combinations
+    of dof coordinates (``torchsim.tendons.combine``), a tendon's length or an equality constraint's side."""
+    dtypes = (np.int64, np.int64, float)
+    return tuple(torch.as_tensor(np.array([w[k] for w in wraps], dtype=d)) for k, d in enumerate(dtypes))
 
 
 def solref_gains(m: mujoco.MjModel, ref: np.ndarray, solimp: np.ndarray) -> np.ndarray:
