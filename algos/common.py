@@ -23,6 +23,7 @@ from torchrl.modules import MLP, NormalParamExtractor, ProbabilisticActor, TanhN
 from torchrl.record.loggers import get_logger
 
 import torchsim.envs
+from torchsim.mujoco_stepper import MujocoStepper
 
 # VecNormV2 (and so RunningNorm) warns on every call that batched containers are experimental; its batch reduction
 # is what we want.
@@ -57,9 +58,19 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     """The task batched over ``num_envs`` with running observation normalisation (``RunningNorm``, statistics over
     the batch too), episode return (``episode_reward``) and length (``step_count``); a ``train`` env also emits
     ``scaled_reward`` (``cfg.algo.reward_scale`` times the reward) and staggers its first episodes if
-    ``cfg.stagger_episodes``. The physics runs compiled (``torchsim.Stepper``, strategy ``auto``) if ``cfg.compile``;
-    ``like``: an env whose stepper (System and compiled step) this one shares, for any ``num_envs`` above 1."""
-    stepper = like.base_env.stepper if like is not None else "auto" if cfg.compile else "eager"
+    ``cfg.stagger_episodes``. The physics runs compiled (``torchsim.Stepper``, strategy ``auto``) if ``cfg.compile``,
+    or in MuJoCo C if ``cfg.physics == "mujoco"`` (``torchsim.mujoco_stepper``: the same task code on MuJoCo's
+    physics); ``like``: an env whose stepper (System and compiled step) this one shares, for any ``num_envs`` above
+    1."""
+    if like is not None:
+        stepper = like.base_env.stepper
+    elif cfg.get("physics", "torchsim") == "mujoco":
+        probe = torchsim.envs.make(cfg.env.name, device=device)  # its System and MuJoCo model, in the env's dtype
+        stepper = MujocoStepper(probe.base_sys, probe.mj_model)
+    elif cfg.get("physics", "torchsim") != "torchsim":
+        raise ValueError(f"physics must be 'torchsim' or 'mujoco', got {cfg.physics!r}")
+    else:
+        stepper = "auto" if cfg.compile else "eager"
     base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length,
                               stagger_episodes=train and cfg.stagger_episodes, stepper=stepper)
     norm = RunningNorm(in_keys=["observation"], decay=cfg.obs_norm_decay, eps=1e-4, reduce_batch_dims=True)

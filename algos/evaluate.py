@@ -1,10 +1,12 @@
 """Evaluate (and render) a trained policy: ``python -m torchsim.evaluate checkpoint=<run>/checkpoints/last.pt
-[episodes=16] [max_steps=N] [video=true] [device=cpu] [seed=N]``.
+[episodes=16] [max_steps=N] [video=true] [device=cpu] [seed=N] [physics=torchsim|mujoco]``.
 
 Prints the deterministic policy's mean return and episode length over ``episodes`` envs (and, for goal-reaching
 tasks, the success rate and median final goal distance); ``seed`` fixes the episodes' start states (a run's
 own evaluations use its ``eval.seed``); ``video=true`` writes
-``eval.gif`` of env 0 next to the checkpoint's run dir.
+``eval.gif`` of env 0 next to the checkpoint's run dir. ``physics=mujoco`` runs the same task code on MuJoCo C's
+physics (``torchsim.mujoco_stepper``): a policy trained in torchsim, evaluated in MuJoCo (default: the physics it
+trained on).
 """
 
 import pathlib
@@ -15,7 +17,8 @@ from omegaconf import OmegaConf
 
 from torchsim.algos.common import evaluate, load_policy, make_env, render_gif
 
-DEFAULTS = {"checkpoint": "???", "episodes": 16, "max_steps": None, "video": False, "device": "cpu", "seed": None}
+DEFAULTS = {"checkpoint": "???", "episodes": 16, "max_steps": None, "video": False, "device": "cpu", "seed": None,
+            "physics": None}
 
 
 def main(argv: list[str]) -> dict:
@@ -24,10 +27,13 @@ def main(argv: list[str]) -> dict:
     args = OmegaConf.merge(args, OmegaConf.from_cli(argv))
     ckpt = torch.load(args.checkpoint, map_location=args.device, weights_only=False)
     cfg = OmegaConf.create(ckpt["cfg"])
+    trained_on = cfg.get("physics", "torchsim")
+    cfg.physics = args.physics or trained_on
     env = make_env(cfg, args.episodes, args.device)
     actor = load_policy(ckpt, env, args.device)
     ev = evaluate(env, actor, args.max_steps or cfg.eval.max_steps, record=args.video, seed=args.seed)
     result = {"env": cfg.env.name, "algo": cfg.algo.name, "env_steps_trained": ckpt["counters"]["env_steps"],
+              "trained_on": trained_on, "physics": cfg.physics,
               "return_mean": ev.ret.mean().item(), "return_std": ev.ret.std().item(),
               "episode_length_mean": ev.length.float().mean().item()}
     if ev.final_distance is not None:

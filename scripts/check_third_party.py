@@ -41,6 +41,7 @@ import numpy as np
 import torch
 
 import torchsim
+from _docs import replace_section
 
 ROOT = Path(__file__).resolve().parent.parent
 DOCS = ROOT / "docs" / "physics.md"
@@ -199,18 +200,6 @@ def summary(rows: list[dict]) -> str:
     return "\n".join(out + (["", "Crashes (engine bugs):"] + crashes if crashes else []))
 
 
-def write_docs(text: str) -> None:
-    """Replace the section's content in docs/physics.md (append the section if absent)."""
-    doc = DOCS.read_text()
-    body = f"{SECTION}\n\n{text.rstrip()}\n"
-    if SECTION not in doc:
-        DOCS.write_text(doc.rstrip() + "\n\n" + body)
-        return
-    head, rest = doc.split(SECTION, 1)
-    nxt = re.search(r"^## ", rest, flags=re.M)
-    DOCS.write_text(head + body + ("\n" + rest[nxt.start():] if nxt else ""))
-
-
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "torchsim" / "third_party")
@@ -246,7 +235,7 @@ def main():
         summary(rows), table(rows)])
     print("\n" + text)
     if args.write_docs:
-        write_docs(text)
+        replace_section(DOCS, SECTION, text)
         print(f"\nwrote {SECTION!r} in {DOCS}")
 
 

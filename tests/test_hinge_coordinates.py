@@ -89,6 +89,8 @@ def test_range_past_half_a_turn_from_ref_is_enforced_like_mujoco(method):
         reference.append(d.qpos[0])
     upper = m.jnt_range[0, 1]
     assert not state.diverged.any()
-    assert max(reference) > upper  # MuJoCo's soft limit lets the link overshoot it a little (5 degrees) ...
-    assert upper - 0.01 < max(angles) < max(reference)  # ... ours less (stiffer limits, issue 27 item 2)
-    assert abs(angles[-1] - reference[-1]) < 0.01  # both come to rest at the limit
+    # MuJoCo's soft limit lets the link overshoot it by 5 degrees (0.088 rad at 2 ms, 0.095 at 0.1 ms); ours is the
+    # same soft limit (tests/test_soft_limits.py): 0.092 rad at 0.5 ms substeps, both methods
+    overshoot, mj_overshoot = max(angles) - upper, max(reference) - upper
+    assert mj_overshoot > 0.05 and abs(overshoot - mj_overshoot) < 0.1 * mj_overshoot
+    assert abs(angles[-1] - reference[-1]) < 1e-4  # both come to rest 0.76 mrad past the limit (to 7e-6 rad)

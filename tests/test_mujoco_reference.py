@@ -139,10 +139,11 @@ def test_penetration_pushed_out_at_mujocos_speed(depth):
 
 
 # Measured torso-height difference to MuJoCo after 2 s (home pose, zero control, MuJoCo 4.0 at 10 ms):
-# spring -1.9 mm with its default 20 substeps (with stiffness 0.1: -18 mm at 10 substeps, -2.9 mm at 20, +3.4 mm
-# at 40: the settling rate depends on how contact impulses meet the 1 kg m^2 armature of 0.04 kg legs, see
-# joint_space.armature_loaded_inertia). xpbd: -28.5 mm, the ankles fold too fast: the projection moves the light
-# legs with their bare inertia and armature only gets its share afterwards, at velocity level (methods/xpbd.py).
+# spring -2.0 mm (-1.9 with the old stiff limits) with its default 20 substeps (with stiffness 0.1: -18 mm at 10
+# substeps, -2.9 mm at 20, +3.4 mm at 40: the settling rate depends on how contact impulses meet the 1 kg m^2
+# armature of 0.04 kg legs, see joint_space.armature_loaded_inertia). xpbd: -28.5 mm, the ankles fold too fast:
+# the projection moves the light legs with their bare inertia and armature only gets its share afterwards, at
+# velocity level (methods/xpbd.py).
 # Item 10: xpbd fails item 7.
 ANT_SETTLE_MM = 3.0
 

@@ -15,11 +15,14 @@ dof creep instead). It is sized by the dof's effective inverse inertia with arma
 inertia every impulse on the dof meets, so a heavy rotor is decelerated at ``frictionloss / (I + J)``.
 """
 
+from typing import NamedTuple
+
 import torch
 
 from torchsim import lanes, spatial, rigid
-from torchsim.kinematics import Bodies, JointFrames, dof_hinge_rows, dof_values
+from torchsim.kinematics import Bodies, JointFrames, dof_angles, dof_hinge_rows, dof_values
 from torchsim.system import System
+from torchsim.tendons import impedance
 
 
 def hinge_incidence(jnt_child, jnt_parent, dof_jnt, dof_is_hinge, num_bodies: int):
@@ -39,11 +42,49 @@ def hinge_incidence(jnt_child, jnt_parent, dof_jnt, dof_is_hinge, num_bodies: in
             torch.tensor(sign, dtype=torch.float64), torch.tensor(pairs, dtype=torch.long).reshape(-1, 2))
 
 
+class LimitRows(NamedTuple):
+    """Each dof's soft limit over one substep (:func:`limit_rows`), all ``(D, B)``: ``active`` where the nearer
+    side is violated (within its margin), ``sign`` +1 at the lower side (it pushes the coordinate up) and -1 at the
+    upper, ``target`` the rate the limit's reference acceleration would reach, ``reg`` MuJoCo's regulariser ``R``."""
+
+    active: torch.Tensor
+    sign: torch.Tensor
+    target: torch.Tensor
+    reg: torch.Tensor
+
+
+def limit_rows(sys: System, q: torch.Tensor, qd: torch.Tensor, h: float) -> LimitRows:
+    """MuJoCo's soft joint limit at dof coordinates and rates ``q, qd (D, B)`` (the substep's start) over a
+    substep ``h``.
+
+    MuJoCo's limit force is ``f = max(0, (aref - a0) / (A + R))`` along the limit's direction, ``aref = -B v - K imp
+    r`` (``r < 0`` the violation less the margin, ``v`` its rate, ``imp`` the ``solimp`` impedance at ``r``), ``a0``
+    the acceleration every other force gives, ``A`` the dof's inverse inertia and ``R = (1 - imp) / imp A0`` (``A0``
+    its value at ``qpos0``). As an impulse over ``h`` it is the clamped ``p = max(0, (target - qd_free) / (A +
+    R))`` with ``target = qd + h aref`` and ``qd_free`` the rate after every other force: where ``A = A0`` the
+    dof reaches ``imp target + (1 - imp) qd_free``, so the violation is released along MuJoCo's spring-damper and a
+    steady load settles it where MuJoCo's does (an explicit force without ``a0`` settles ``1 / (1 - imp)``
+    deeper, 20x at the default ``solimp``). A range narrower than twice the margin, where MuJoCo has both sides,
+    keeps the nearer one."""
+    lo, hi = lanes.param(sys.dof_range, 2).unbind(-2)
+    below, above = q - lo, hi - q
+    lower = below <= above
+    sign = 2.0 * lower.to(q.dtype) - 1.0
+    r = torch.where(lower, below, above) - lanes.param(sys.dof_margin, 1)
+    k, b = lanes.param(sys.dof_limit_gains, 2).unbind(-2)
+    imp = impedance(sys.dof_solimp, r, sys.dof_solimp_square)
+    target = qd + sign * h * (-b * sign * qd - k * imp * r)
+    reg = (1.0 - imp) / imp * lanes.param(sys.dof_invweight, 1)
+    return LimitRows(lanes.param(sys.dof_limited, 1) & (r < 0), sign, target, reg)
+
+
 def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, frames: JointFrames,
-                     qd_ref: torch.Tensor, damping_h: torch.Tensor, friction_h: torch.Tensor | None = None):
+                     qd_ref: torch.Tensor, damping_h: torch.Tensor, friction_h: torch.Tensor | None = None,
+                     limits: LimitRows | None = None):
     """Armature (a rotor per hinge dof turning at ``qd_ref (D, B)``) and implicit damping ``damping_h = h c
     (D, 1 | B)`` on all hinge dofs at once: one dense ``D x D`` solve per env; with ``friction_h = h frictionloss
-    (D, 1 | B)`` [N m s], dry friction on the hinges ``sys.dof_friction_hinges`` too (:func:`_hinge_friction`).
+    (D, 1 | B)`` [N m s], dry friction on the hinges ``sys.dof_friction_hinges`` too (:func:`_hinge_friction`);
+    with ``limits``, the soft limits (:func:`_limit_system`).
 
     Dof ``i`` turns its child against its parent about ``u_i``, the row of ``G = A^-1`` for its slot (its axis for
     a single hinge), so ``A_ij = sum_b s_ib s_jb u_i^T I_b^-1 u_j`` (``s = +1`` child, ``-1`` parent) is the dofs'
@@ -67,17 +108,45 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
     a_flat = u.new_zeros(n_dof * n_dof, batch).index_add(0, dof[first] * n_dof + dof[second], blocks)
     armature = torch.where(hinge, lanes.param(sys.dof_armature, 1), 0.0)
     inertia = armature + torch.where(hinge, damping_h, 0.0)
-    # a dof without rotor or damping gets compliance ~1e30 and a zero right-hand side: its impulse is ~1e-30 of
-    # the others', i.e. none, and the matrix needs no masking
-    compliance = 1.0 / inertia.clamp_min(1e-30)
     qd_raw = spatial.dot(u, bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent))
-    rhs = torch.where(inertia > 0, compliance * armature * qd_ref - qd_raw, 0.0)
-    diagonal = torch.arange(n_dof, device=u.device) * (n_dof + 1)
-    mat = a_flat.index_add(0, diagonal, compliance.expand(n_dof, batch)).view(n_dof, n_dof, batch)
+    mat, rhs = _dof_system(a_flat, inertia, armature * qd_ref, qd_raw)
     a = a_flat.view(n_dof, n_dof, batch)
+    if limits is not None:
+        mat, rhs = _limit_system(a_flat, a, inertia, armature * qd_ref, qd_raw, spatial.spd_solve(mat, rhs),
+                                 limits._replace(active=limits.active & hinge))
     mu = spatial.spd_solve(mat, rhs) if friction_h is None else _hinge_friction(sys, mat, a, rhs, qd_raw, friction_h)
     xd_ang = bodies.xd_ang.index_add(-2, body, w_inc * mu.index_select(-2, dof))  # I_b^-1 sum_k s_k u_k mu_k
     return bodies._replace(xd_ang=xd_ang), qd_raw + spatial.matvec(a, mu)
+
+
+def _dof_system(a_flat: torch.Tensor, inertia: torch.Tensor, momentum: torch.Tensor, qd_raw: torch.Tensor):
+    """The matrix ``(D, D, B)`` and right-hand side ``(D, B)`` of the dof impulses ``mu`` for dof elements of
+    inertia ``inertia`` and momentum ``momentum`` (``(D, B)``; a rotor: ``J qd_ref``, ``J + h c``): ``(A +
+    diag(1 / inertia)) mu = momentum / inertia - qd_raw``, ``A`` from ``a_flat (D * D, B)``."""
+    n_dof, batch = qd_raw.shape
+    # a dof without an element gets compliance ~1e30 and a zero right-hand side: its impulse is ~1e-30 of the
+    # others', i.e. none, and the matrix needs no masking
+    compliance = 1.0 / inertia.clamp_min(1e-30)
+    rhs = torch.where(inertia > 0, compliance * momentum - qd_raw, 0.0)
+    diagonal = torch.arange(n_dof, device=qd_raw.device) * (n_dof + 1)
+    return a_flat.index_add(0, diagonal, compliance.expand(n_dof, batch)).view(n_dof, n_dof, batch), rhs
+
+
+def _limit_system(a_flat: torch.Tensor, a: torch.Tensor, inertia: torch.Tensor, momentum: torch.Tensor,
+                  qd_raw: torch.Tensor, mu_free: torch.Tensor, limits: LimitRows):
+    """:func:`_dof_system` with the soft limits (:func:`limit_rows`) that push, given the impulses ``mu_free``
+    of the system without them.
+
+    A pushing limit ends the substep with ``qd + R p = target`` (``p`` its impulse): on its dof it is an element
+    beside the rotor, of inertia ``1 / R`` and momentum ``target / R``, so it joins the same solve through the
+    matrix's diagonal and right-hand side, exact where the dofs are coupled. Which limits push is read from the
+    rates without limits (``p > 0`` exactly where ``target`` exceeds them, for one limit or uncoupled ones); a
+    coupled limit found pushing there that its neighbours' limits would have relieved keeps pushing for this
+    substep."""
+    free = qd_raw + spatial.matvec(a, mu_free)
+    push = limits.active & (limits.sign * (limits.target - free) > 0)
+    stiff = torch.where(push, 1.0 / limits.reg, 0.0)
+    return _dof_system(a_flat, inertia + stiff, momentum + stiff * limits.target, qd_raw)
 
 
 def _hinge_friction(sys: System, mat: torch.Tensor, a: torch.Tensor, rhs: torch.Tensor, qd_raw: torch.Tensor,
@@ -109,20 +178,24 @@ def _hinge_friction(sys: System, mat: torch.Tensor, a: torch.Tensor, rhs: torch.
 
 
 def slide_inertia_and_damping(sys: System, before: Bodies, after: Bodies, axes: torch.Tensor, qd: torch.Tensor,
-                              inv: rigid.InverseInertia, h: float):
+                              inv: rigid.InverseInertia, h: float, limits: LimitRows | None = None):
     """The same for slide dofs, one dof at a time: of the change ``dqd`` forces made, ``dqd / (1 + J w)`` is kept
     (``w = 1/m_c + 1/m_p``), then damping is implicit, then dry friction (``sys.dof_friction_slides``) takes an
-    impulse of at most ``h frictionloss`` meeting the effective inverse mass ``w / (1 + J w + h c w)``.
+    impulse of at most ``h frictionloss`` meeting the effective inverse mass ``w_eff = w / (1 + J w + h c w)``,
+    then a violated limit the clamped impulse ``max(0, (target - qd) / (w_eff + R))`` (:func:`limit_rows`).
     ``axes (3, D, B)``, rates ``qd (D, B)``. Returns bodies and every dof's rate ``(D, B)``."""
     w = rigid.dof_inverse_mass(sys, inv, axes)
     dqd = rigid.dof_rate_change(sys, axes, before, after)
     armature, damping = lanes.param(sys.dof_armature, 1), lanes.param(sys.dof_damping, 1)
     shrink = 1.0 / (1.0 + armature * w)
     target = (qd + dqd * shrink) / (1.0 + h * damping * w * shrink)
+    w_eff = w / (1.0 + armature * w + h * damping * w)
     if sys.dof_friction_slides:
-        w_eff = w / (1.0 + armature * w + h * damping * w)
         limit = h * lanes.param(sys.dof_frictionloss, 1)
         target = target + w_eff * torch.minimum(torch.maximum(-target / w_eff, -limit), limit)
+    if limits is not None:
+        push = limits.sign * torch.clamp(limits.sign * (limits.target - target), min=0.0)
+        target = target + torch.where(limits.active, w_eff * push / (w_eff + limits.reg), 0.0)
     impulse = torch.where(lanes.param(sys.dof_is_hinge, 1), 0.0, (target - (qd + dqd)) / w)
     return rigid.apply_dof_impulse(sys, after, inv, axes, impulse, position=False), target
 
@@ -137,14 +210,21 @@ def armature_impulse(sys: System, inv: rigid.InverseInertia, axes: torch.Tensor,
 
 
 def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,
-                        h: float):
-    """Armature, implicit damping and dry friction on one substep's force-driven velocity change, for all dofs;
-    ``frames`` measured at the substep start. Returns bodies and dof rates ``(D, B)``."""
+                        h: float, soft_limits: bool = True):
+    """Armature, implicit damping, dry friction and (``soft_limits``) the soft limits on one substep's force-driven
+    velocity change, for all dofs; ``frames`` measured at the substep start. Returns bodies and dof rates ``(D, B)``.
+    (XPBD solves the limits in its projection instead, where the joints hold: an impulse here turns a link about its
+    COM, and the projection would keep only ``I_com / I_pivot`` of it.)"""
     qd = dof_values(sys, frames.qd)
     friction_h = h * lanes.param(sys.dof_frictionloss, 1) if sys.dof_friction_hinges.shape[0] else None
-    after, rates = hinge_rate_solve(sys, after, inv, frames, qd, h * lanes.param(sys.dof_damping, 1), friction_h)
+    limits = None
+    if sys.dof_limits and soft_limits:
+        limits = limit_rows(sys, dof_angles(sys, dof_values(sys, frames.q)), qd, h)
+    after, rates = hinge_rate_solve(sys, after, inv, frames, qd, h * lanes.param(sys.dof_damping, 1), friction_h,
+                                    limits)
     if sys.jnt_has_slides:
-        after, qd_slides = slide_inertia_and_damping(sys, before, after, dof_values(sys, frames.axes), qd, inv, h)
+        after, qd_slides = slide_inertia_and_damping(sys, before, after, dof_values(sys, frames.axes), qd, inv, h,
+                                                     limits)
         rates = torch.where(lanes.param(sys.dof_is_hinge, 1), rates, qd_slides)
     return after, rates
 

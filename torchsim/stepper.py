@@ -23,6 +23,7 @@ Steppers hold no process-wide state: two Systems with different strategies step 
 """
 
 import functools
+import inspect
 import math
 import threading
 import warnings
@@ -39,6 +40,10 @@ from torchsim.step_kernel import StepKernel, join_poses, split_poses
 from torchsim.system import System
 
 STRATEGIES = ("eager", "kernel", "rows", "loop", "calls")
+# isolated: other steppers' compiled entries for a function (other models, batch sizes) do not count against this
+# one's recompile limit, which fullgraph=True makes a hard error. torch 2.13 has the option; 2.11 (the GPU machine's
+# build) has not, and there every stepper shares the limit
+_ISOLATED = {"isolate_recompiles": True} if "isolate_recompiles" in inspect.signature(torch.compile).parameters else {}
 
 
 def choose_strategy(sys: System) -> str:
@@ -157,7 +162,10 @@ class Stepper:
         """Inductor's options: its C++ wrapper (a substep is one kernel with ~120 buffers, and driving those from
         Python cost about as much as the kernel below batch ~100); single-threaded kernels where parts run on
         threads (their OpenMP loops do not scale)."""
-        return {"cpp_wrapper": True} | ({"cpp.threads": 1} if threaded else {}) | self.inductor_options
+        # CUDA keeps the Python wrapper: torch 2.11's C++ wrapper for CUDA graphs fails to build the step
+        # (an inductor error in its buffer reuse), measured on an H100
+        wrapper = {"cpp_wrapper": True} if self.sys.device.type == "cpu" else {}
+        return wrapper | ({"cpp.threads": 1} if threaded else {}) | self.inductor_options
 
     def _compile(self, name: str, fn, threaded: bool = False):
         """``torch.compile(fn)`` once per name and options, shared with the steppers ``for_system`` made;
@@ -166,9 +174,7 @@ class Stepper:
         key = (name, self.backend, tuple(sorted(options.items())))
         if key not in self._shared:
             how = dict(options=options) if self.backend == "inductor" else dict(backend=self.backend)
-            # isolated: other steppers' compiled entries for fn (other models, batch sizes) do not count against
-            # this one's recompile limit, which fullgraph=True makes a hard error
-            self._shared[key] = torch.compile(fn, fullgraph=True, dynamic=False, isolate_recompiles=True, **how)
+            self._shared[key] = torch.compile(fn, fullgraph=True, dynamic=False, **_ISOLATED, **how)
         return self._shared[key]
 
     def _compiled_loop(self):

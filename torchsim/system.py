@@ -75,6 +75,11 @@ class System:
         dof_flat: (D,) index into a joint's 6 coordinate slots (3 slides, then 3 hinges), flattened as j*6+slot.
         dof_is_hinge: (D,) bool.  dof_qpos, dof_qvel: (D,) addresses in qpos/qvel.
         dof_limited: (D,) bool.  dof_range: (D, 2).  dof_ref: (D,) MuJoCo qpos0 (the coordinate of the zero frame).
+        dof_limit_gains: (D, 2) MuJoCo's reference-acceleration gains ``K`` [1/s^2], ``B`` [1/s] from the joint's
+        ``solref``.  dof_solimp: (D, 5) the joint's ``solimp``.  dof_margin: (D,) [rad | m] the limit's ``margin``.
+        dof_invweight: (D,) MuJoCo's ``dof_invweight0`` (its limit regulariser's scale).  dof_limits: whether any
+        dof is limited (static structure: a model without limits does no limit work; ``joint_space.limit_rows``);
+        dof_solimp_square: whether every solimp ``power`` is 2 (static: its impedance needs no exp and log).
         dof_window_centre, dof_window_shift: (D,) the window ``(centre - pi, centre + pi]`` in which a substep reads
         a hinge angle, and ``ref - centre`` less whole turns (``kinematics.dof_angles``); dof_has_windows: whether
         any window is off ``ref`` (a range reaching past half a turn from it).
@@ -170,6 +175,12 @@ class System:
     dof_qvel: torch.Tensor
     dof_limited: torch.Tensor
     dof_range: torch.Tensor
+    dof_limit_gains: torch.Tensor
+    dof_solimp: torch.Tensor
+    dof_margin: torch.Tensor
+    dof_invweight: torch.Tensor
+    dof_limits: bool
+    dof_solimp_square: bool
     dof_damping: torch.Tensor
     dof_armature: torch.Tensor
     dof_stiffness: torch.Tensor

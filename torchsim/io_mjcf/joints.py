@@ -10,6 +10,7 @@ import torch
 from torchsim import joint_space
 from torchsim.io_mjcf.bodies import FusedBodies, compose, quat_mat
 from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
+from torchsim.io_mjcf.tendons import solref_gains
 
 _FREE, _BALL, _SLIDE, _HINGE = (int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJoint.mjJNT_BALL),
                                 int(mujoco.mjtJoint.mjJNT_SLIDE), int(mujoco.mjtJoint.mjJNT_HINGE))
@@ -20,7 +21,10 @@ JOINT_SHAPES = {"child": (), "parent": (), "anchor_child": (3,), "anchor_parent"
 #: per-dof fields (``dof_*``) and their dtypes
 DOF_DTYPES = {"flat": np.int64, "is_hinge": bool, "qpos": np.int64, "qvel": np.int64, "limited": bool,
               "range": float, "damping": float, "armature": float, "stiffness": float, "springref": float,
-              "ref": float, "frictionloss": float, "window_centre": float, "window_shift": float}
+              "ref": float, "frictionloss": float, "window_centre": float, "window_shift": float, "margin": float,
+              "invweight": float, "solimp": float, "limit_gains": float}
+#: the per-dof fields with a value of more than one number, and its shape
+DOF_SHAPES = {"range": (2,), "solimp": (5,), "limit_gains": (2,)}
 
 
 def joint_fields(m: mujoco.MjModel, fused: FusedBodies) -> tuple[dict, dict]:
@@ -148,7 +152,10 @@ def _dof(m, j, joint: int, slot: int) -> dict:
     return dict(flat=joint * 6 + slot, is_hinge=m.jnt_type[j] == _HINGE, qpos=qpos, qvel=qvel,
                 limited=bool(m.jnt_limited[j]), range=m.jnt_range[j], damping=m.dof_damping[qvel],
                 armature=m.dof_armature[qvel], stiffness=m.jnt_stiffness[j], springref=m.qpos_spring[qpos],
-                ref=ref, frictionloss=m.dof_frictionloss[qvel], window_centre=centre, window_shift=shift, jnt=joint)
+                ref=ref, frictionloss=m.dof_frictionloss[qvel], window_centre=centre, window_shift=shift, jnt=joint,
+                # the soft limit (joint_space.limit_rows): MuJoCo's gains at its own timestep, as its step has them
+                margin=m.jnt_margin[j], invweight=m.dof_invweight0[qvel], solimp=m.jnt_solimp[j],
+                limit_gains=solref_gains(m, m.jnt_solref[j:j + 1], m.jnt_solimp[j:j + 1])[0])
 
 
 def _tensors(joints: list, dofs: list, ball: list, free: list, num_bodies: int) -> dict:
@@ -158,7 +165,9 @@ def _tensors(joints: list, dofs: list, ball: list, free: list, num_bodies: int) 
 
     out = {f"jnt_{k}": column(joints, k, np.int64 if k in ("child", "parent") else float, shape)
            for k, shape in JOINT_SHAPES.items()}
-    out |= {f"dof_{k}": column(dofs, k, dtype, (2,) if k == "range" else ()) for k, dtype in DOF_DTYPES.items()}
+    out |= {f"dof_{k}": column(dofs, k, dtype, DOF_SHAPES.get(k, ())) for k, dtype in DOF_DTYPES.items()}
+    out["dof_limits"] = bool(out["dof_limited"].any())
+    out["dof_solimp_square"] = bool((out["dof_solimp"][:, 4] == 2).all())
     child, parent = [j["child"] for j in joints], [j["parent"] for j in joints]
     out["jnt_colors"] = _edge_colors(child, parent, num_bodies)
     out["jnt_levels"] = _levels(child, parent, num_bodies)

@@ -1,4 +1,5 @@
-"""Spring method: joints and limits as stiff damped springs (explicit forces), contacts as velocity impulses.
+"""Spring method: joints as stiff damped springs (explicit forces), contacts as velocity impulses; joint limits are
+MuJoCo's soft constraint, solved with armature and damping (``joint_space.limit_rows``, shared with XPBD).
 
 Spring stiffness is set per joint from the effective mass it acts on and the substep, ``k = kappa m / h^2``
 (``kappa = System.joint_stiffness``, a fraction of the explicit stability limit), so light links get soft
@@ -16,18 +17,13 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import hinge_anchors, integrator, joint_space, lanes, spatial, rigid
+from torchsim import hinge_anchors, integrator, joint_space, spatial, rigid
 from torchsim.actuators import dof_forces
 from torchsim.collision import contacts
 from torchsim.fluid import fluid_wrench
 from torchsim.kinematics import Bodies, JointFrames, dof_angles, dof_values, joint_frames
 from torchsim.methods._method import Method
 from torchsim.system import System
-
-
-def _gains(sys: System, inv_mass: torch.Tensor, h: float):
-    """Spring and damper coefficients for an effective inverse mass ``inv_mass`` (any shape, e.g. ``(D, B)``)."""
-    return sys.joint_stiffness / (h * h * inv_mass), sys.joint_damping / (h * inv_mass)
 
 
 def _subspace_inverse(k: torch.Tensor, proj: torch.Tensor) -> torch.Tensor:
@@ -106,15 +102,6 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tenso
     return total[:3], total[3:]
 
 
-def limit_forces(sys: System, q: torch.Tensor, qd: torch.Tensor, w: torch.Tensor, h: float) -> torch.Tensor:
-    """Generalized spring-damper force ``(D, B)`` on every dof outside its range, for coordinates and rates
-    ``q, qd (D, B)`` (``w (D, B)``: dof inverse inertia)."""
-    lo, hi = lanes.param(sys.dof_range, 2).unbind(-2)
-    violation = torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0)
-    k, c = _gains(sys, w, h)
-    return torch.where(lanes.param(sys.dof_limited, 1) & (violation != 0), -k * violation - c * qd, 0.0)
-
-
 def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia,
                      rot: torch.Tensor | None = None) -> Bodies:
     """Velocity impulses stopping approach and separating at ``depth / (e contact_timeconst)``, Coulomb-capped
@@ -143,14 +130,12 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia,
     return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
 
 
-def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, limit_inv_mass: torch.Tensor, axes: torch.Tensor,
-                     ctrl: torch.Tensor, h: float):
+def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, axes: torch.Tensor, ctrl: torch.Tensor):
     """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of the dofs' generalized forces: actuators, passive springs
-    and limits, for dof ``axes (3, D, B)``, ``ctrl (U, B)`` and the dofs' inverse inertias ``limit_inv_mass (D, B)``
-    (the limit springs' gains)."""
+    and tendons, for dof ``axes (3, D, B)`` and ``ctrl (U, B)``. (Limits are soft constraints solved with armature
+    and damping, ``joint_space.limit_rows``.)"""
     q, qd = dof_angles(sys, dof_values(sys, fr.q)), dof_values(sys, fr.qd)
-    tau = dof_forces(sys, q, qd, ctrl) + limit_forces(sys, q, qd, limit_inv_mass, h)
-    return rigid.dof_wrench(sys, bodies, axes, tau)
+    return rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, qd, ctrl))
 
 
 class StepTerms(NamedTuple):
@@ -163,13 +148,11 @@ class StepTerms(NamedTuple):
         loaded: world-frame inverse masses and inertias with each hinge's armature on its child, for contacts
             (``joint_space.armature_loaded_inertia``).
         joint_gain: (3, 3, lin/ang, J, B) joint spring gain matrices (:func:`joint_gain`).
-        limit_inv_mass: (D, B) the dofs' inverse inertias (limit spring gains).
     """
 
     inv_inertia_body: torch.Tensor
     loaded: rigid.InverseInertia
     joint_gain: torch.Tensor
-    limit_inv_mass: torch.Tensor
 
 
 def step_terms(sys: System, bodies: Bodies, h: float) -> StepTerms:
@@ -178,18 +161,17 @@ def step_terms(sys: System, bodies: Bodies, h: float) -> StepTerms:
     inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
     fr = joint_frames(sys, bodies, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
-    return StepTerms(inv_inertia_body, joint_space.armature_loaded_inertia(sys, inv, axes), joint_gain(sys, fr, inv),
-                     rigid.dof_inverse_mass(sys, inv, axes))
+    return StepTerms(inv_inertia_body, joint_space.armature_loaded_inertia(sys, inv, axes), joint_gain(sys, fr, inv))
 
 
 def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h: float) -> Bodies:
-    """Forces (actuators, limits, joint springs) -> velocities (armature, damping) -> contact impulses (on
+    """Forces (actuators, joint springs) -> velocities (armature, damping, limits) -> contact impulses (on
     armature-loaded links) -> positions. Lanes ``bodies``, ``ctrl (U, B)``; ``terms`` from :func:`step_terms` at
     the step's start."""
     inv = rigid.inverse_inertia(sys, bodies.x_quat, terms.inv_inertia_body)
     fr = joint_frames(sys, bodies, all_slots=False, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
-    force, torque = dof_force_wrench(sys, bodies, fr, terms.limit_inv_mass, axes, ctrl, h)
+    force, torque = dof_force_wrench(sys, bodies, fr, axes, ctrl)
     spring_force, spring_torque = joint_wrench(sys, bodies, fr, terms.joint_gain, h)
     if sys.fluid:
         fluid_force, fluid_torque = fluid_wrench(sys, bodies, inv.rot)

@@ -1,10 +1,12 @@
 """XPBD: after an unconstrained substep, project contacts and joints onto their constraints by position.
 
 Each joint is solved exactly (to first order) as one 6x6 block system: 3 translation rows and 3 rotation rows in
-the joint's hinge-slot coordinates (hard for constrained directions and for dofs beyond their limits), eliminated
-with 3x3 Schur complements. Joints of one colour share no body and run in parallel; contacts, then colours, follow
-Gauss-Seidel (``xpbd_iterations`` passes). Contacts on the same body are averaged (Jacobi). Contact friction is
-positional Coulomb friction: the substep's tangential slip is undone up to ``mu`` times the normal correction.
+the joint's hinge-slot coordinates (hard for constrained directions), eliminated with 3x3 Schur complements.
+Joint limits are MuJoCo's soft constraint (``joint_space.limit_rows``, shared with the spring method) as compliant
+rows of the same blocks (:func:`_slot_limits`). Joints of one colour share no body and run in parallel; contacts,
+then colours, follow Gauss-Seidel (``xpbd_iterations`` passes). Contacts on the same body are averaged (Jacobi).
+Contact friction is positional Coulomb friction: the substep's tangential slip is undone up to ``mu`` times the
+normal correction.
 Velocities are then the substep's displacement over ``h``; armature gets its share of the projection's effect at
 velocity level (``joint_space``), which is first order in ``h``: with armature much heavier than the links it
 drives (the ant), the projection's bare-inertia displacements dominate and the ant settles too low (see the tests).
@@ -25,15 +27,46 @@ from torchsim.methods._method import Method
 from torchsim.system import System
 
 
-def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bodies:
-    """Solve every joint colour by colour: anchors coincide, constrained axes align, hinge dofs stay in range.
+def _slot_limits(sys: System, colour: torch.Tensor, fr, limits: joint_space.LimitRows, goal: torch.Tensor,
+                 impulse: torch.Tensor):
+    """The soft-limit rows of a colour's hinge slots ``(3, K, B)``: where a limit pushes, the coordinate's lead over
+    its ``goal`` (``q + h target``, :func:`substep`), MuJoCo's ``R``, the armature and the row's ``impulse`` so far
+    (``(D, B)`` for all dofs); and each slot's dof ``(3 K,)``.
+
+    The row's compliance (:func:`project_joints`) is MuJoCo's ``R`` times ``1 + J W`` (``J`` the armature, ``W``
+    the row's diagonal in the Schur complement, its inverse inertia with the anchor held): the rotor rides with the
+    dof, so the row moves it by ``W_J / (W_J + R)`` of its lead, ``W_J = W / (1 + J W)`` its inverse inertia with
+    the rotor, as MuJoCo's limit does."""
+    slots = sys.jnt_slot_dof[colour][:, 3:]
+    has_dof = lanes.param(slots >= 0, 1, 1)
+    dof = slots.T.reshape(-1).clamp_min(0)
+    q = fr.q[:, 3:].movedim(1, 0)
+    if sys.dof_has_windows:  # static: a range reaching past half a turn from ref (kinematics.dof_angles)
+        q = in_window(sys, q, lambda field: lanes.param(field[slots.clamp_min(0)], 1, 1), has_dof)
+    else:
+        q = q + torch.where(has_dof, lanes.param(sys.dof_ref[slots.clamp_min(0)], 1, 1), 0.0)
+    slot = [x.index_select(0, dof).view(q.shape[:2] + x.shape[1:]) for x in (*limits, goal, impulse)]
+    active, sign, _, reg, goal, impulse = slot
+    lead = q - goal
+    active = has_dof & active & (sign * lead < 0)
+    armature = lanes.param(sys.dof_armature, 1).index_select(0, dof).view(q.shape[:2] + (-1,))
+    return active, lead, reg, armature, impulse, dof
+
+
+def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, limits: joint_space.LimitRows | None = None,
+                   goal: torch.Tensor | None = None, impulse: torch.Tensor | None = None):
+    """Solve every joint colour by colour: anchors coincide, constrained axes align, pushing limits move their
+    dofs towards their goals (:func:`_slot_limits`).
 
     Per joint, 3 translation rows and 3 rotation rows in the joint's hinge-slot coordinates (``G = A^-1`` maps a
     relative rotation onto the slots' axes ``A``) are solved together by 3x3 Schur complements. A rotation row is
-    hard for a constrained direction or for a dof beyond its limit, and absent for a free dof. Bodies are lanes
-    (``(3|4, N + 1, B)``); per joint of a colour, the rows are vectors ``(3, K, B)`` and the blocks matrices
-    ``(3, 3, K, B)``.
+    hard for a constrained direction, compliant (XPBD's compliance: MuJoCo's soft limit) for a dof whose limit
+    pushes, and absent for a free dof. Bodies are lanes (``(3|4, N + 1, B)``); per joint of a colour, the rows are
+    vectors ``(3, K, B)`` and the blocks matrices ``(3, 3, K, B)``. With ``limits``, also returns how far the
+    limits moved each dof ``(D, B)`` and their rows' accumulated ``impulse`` (passed in: from the substep's earlier
+    passes, XPBD's ``lambda``, so that further passes converge to the compliant row rather than stiffen it).
     """
+    moved = None if limits is None else torch.zeros_like(goal)
     for colour in sys.jnt_colors:
         child, parent = sys.jnt_child[colour], sys.jnt_parent[colour]
         fr = joint_frames(sys, bodies, colour)
@@ -53,21 +86,15 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         k_aa = i_c + i_p
 
         # rotation rows in hinge-slot coordinates: the 3 hinge slots as a vector (3, K, B)
-        slot_dof = lanes.param(sys.jnt_slot_dof[colour][:, 3:], 1, 1)
-        has_dof = slot_dof >= 0
-        dof = slot_dof.clamp_min(0)
-        q = fr.q[:, 3:].movedim(1, 0)
-        if sys.dof_has_windows:  # static: a range reaching past half a turn from ref (kinematics.dof_angles)
-            q = in_window(sys, q, lambda field: field[dof], has_dof)
-        else:
-            q = q + torch.where(has_dof, sys.dof_ref[dof], 0.0)
-        lo, hi = sys.dof_range[dof].unbind(-1)
-        violation = torch.where(has_dof & sys.dof_limited[dof], torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0), 0.0)
         mode = lanes.param(sys.jnt_mode[colour], 1, 1)
         hard = mode[:3].cumsum(0) > 0  # a weld's slots; slots k >= n of an n-hinge joint (n = 1, 2)
         g = fr.hinge_dual
-        error = torch.where(hard, spatial.matvec(g, fr.ang_err), violation)
-        mask = (hard | (violation != 0)).to(q.dtype)  # the diagonal of the rotation rows' projector P_m
+        error = spatial.matvec(g, fr.ang_err)
+        if limits is not None:
+            pushing, lead, reg, armature, held, dof = _slot_limits(sys, colour, fr, limits, goal, impulse)
+            error = torch.where(hard, error, lead)
+            hard = hard | pushing
+        mask = hard.to(error.dtype)  # the diagonal of the rotation rows' projector P_m
         gt = spatial.transpose(g)
 
         a, b = k_ll, spatial.mm(k_la, gt) * mask[None]  # no slides: every translation is constrained, P_l = I
@@ -78,30 +105,42 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia) -> Bo
         a_inv = spatial.inv3(a)
         bt_ainv = spatial.mm(spatial.transpose(b), a_inv)
         rhs_l, rhs_s = -fr.lin_err, -mask * error
-        mu = spatial.matvec(spatial.inv3(c - spatial.mm(bt_ainv, b)), rhs_s - spatial.matvec(bt_ainv, rhs_l))
+        schur = c - spatial.mm(bt_ainv, b)
+        if limits is not None:
+            compliance = torch.where(pushing, reg * (1.0 + armature * (schur * eye).sum(1)), 0.0)
+            schur = schur + eye * compliance[None]
+            rhs_s = rhs_s - compliance * held
+        mu = spatial.matvec(spatial.inv3(schur), rhs_s - spatial.matvec(bt_ainv, rhs_l))
+        if limits is not None:  # a compliant row ends where its lead is -compliance times its impulse
+            dq = torch.where(pushing, -lead - compliance * (held + mu), 0.0)
+            moved = moved.index_add(0, dof, dq.reshape(-1, dq.shape[-1]))
+            impulse = impulse.index_add(0, dof, torch.where(pushing, mu, 0.0).reshape(-1, dq.shape[-1]))
         p_lin = spatial.matvec(a_inv, rhs_l - spatial.matvec(b, mu))
         p_ang = spatial.matvec(gt, mu)
         if sys.jnt_has_offsets:
             p_ang = p_ang + hinge_anchors.turn_moment(fr.anchor_turn, a1, p_lin)
         bodies = rigid.apply_pair_position(bodies, inv, child, parent, fr.r_child, fr.r_parent, p_lin, p_ang)
-    return bodies
+    return bodies if limits is None else (bodies, moved, impulse)
 
 
-def correct_slides(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pred: torch.Tensor) -> Bodies:
-    """Slide dofs: give armature its share of the projection's effect (see ``joint_space.armature_impulse``),
-    then push them back inside their limits. (Hinge dofs get both inside ``project_joints``.) ``q_pred (D, B)``:
-    the dofs' coordinates predicted from their rates."""
+def correct_slides(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pred: torch.Tensor,
+                   limits: joint_space.LimitRows | None = None, goal: torch.Tensor | None = None) -> Bodies:
+    """Slide dofs: give armature its share of the projection's effect (see ``joint_space.armature_impulse``; hinge
+    dofs get theirs in ``substep``'s last rate solve), then move a dof whose limit pushes ``W_J / (W_J + R)`` of
+    its lead over its ``goal`` (as :func:`_slot_limits`). ``q_pred (D, B)``: the dofs' coordinates predicted from
+    their rates."""
     fr = joint_frames(sys, bodies)
     axes = dof_values(sys, fr.axes)
     q = dof_values(sys, fr.q) + lanes.param(sys.dof_ref, 1)
     slide = ~lanes.param(sys.dof_is_hinge, 1)
-    w = rigid.dof_inverse_mass(sys, inv, axes)
     impulse = torch.where(slide, joint_space.armature_impulse(sys, inv, axes, q - q_pred), 0.0)
-    q = q + w * impulse
-    lo, hi = lanes.param(sys.dof_range, 2).unbind(-2)
-    limited = slide & lanes.param(sys.dof_limited, 1)
-    violation = torch.where(limited, torch.clamp(q - hi, min=0.0) + torch.clamp(q - lo, max=0.0), 0.0)
-    return rigid.apply_dof_impulse(sys, bodies, inv, axes, impulse - violation / w, position=True)
+    if limits is not None:
+        w = rigid.dof_inverse_mass(sys, inv, axes)
+        lead = q + w * impulse - goal
+        w_rotor = w / (1.0 + lanes.param(sys.dof_armature, 1) * w)
+        pushing = slide & limits.active & (limits.sign * lead < 0)
+        impulse = impulse - torch.where(pushing, w_rotor / (w_rotor + limits.reg) * lead / w, 0.0)
+    return rigid.apply_dof_impulse(sys, bodies, inv, axes, impulse, position=True)
 
 
 def project_contacts(sys: System, bodies: Bodies, previous: Bodies, inv: rigid.InverseInertia):
@@ -167,19 +206,26 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
         fluid_force, fluid_torque = fluid_wrench(sys, bodies, inv.rot)
         force, torque = force + fluid_force, torque + fluid_torque
     after = integrator.velocity_update(sys, bodies, inv, force, torque, h)
-    after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
+    after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h, soft_limits=False)
     q_pred = q + h * qd_pred
     moved = integrator.integrate_positions(after, h)
     inv = rigid.inverse_inertia(sys, moved.x_quat, inv_inertia_body)
+    limits = joint_space.limit_rows(sys, q, qd, h) if sys.dof_limits else None
+    goal = None if limits is None else q + h * limits.target  # where each limit's reference rate takes its dof
+    rotor_ref, impulse = qd_pred, None if limits is None else torch.zeros_like(goal)
     for _ in range(sys.xpbd_iterations):
         moved, con, active, scale_a, scale_b = project_contacts(sys, moved, bodies, inv)
-        moved = project_joints(sys, moved, inv)
+        if limits is None:
+            moved = project_joints(sys, moved, inv)
+        else:
+            moved, dq, impulse = project_joints(sys, moved, inv, limits, goal, impulse)
+            rotor_ref = rotor_ref + dq / h  # the rotors rode with the limits' moves (_slot_limits)
     if sys.jnt_has_slides:
-        moved = correct_slides(sys, moved, inv, q_pred)
+        moved = correct_slides(sys, moved, inv, q_pred, limits, goal)
     xd_vel = (moved.x_pos - bodies.x_pos) / h
     xd_ang = spatial.quat_to_rot_vec(spatial.quat_mul(moved.x_quat, spatial.quat_conj(bodies.x_quat))) / h
     moved = stop_contacts(moved._replace(xd_vel=xd_vel, xd_ang=xd_ang), inv, con, active, scale_a, scale_b)
-    moved, _ = joint_space.hinge_rate_solve(sys, moved, inv, fr, qd_pred, torch.zeros_like(qd_pred))
+    moved, _ = joint_space.hinge_rate_solve(sys, moved, inv, fr, rotor_ref, torch.zeros_like(qd_pred))
     return moved
 
 

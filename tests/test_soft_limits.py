@@ -1,0 +1,128 @@
+"""Soft joint limits (``joint_space.limit_rows``) against MuJoCo (float64, CPU): MuJoCo's ``solref``/``solimp``
+constraint, so a violated limit is released at MuJoCo's speed and a loaded limit gives way as far as MuJoCo's.
+
+The hinge is the humanoid's knee in miniature: a 2 kg shin capsule and a 1 kg foot ball hanging from a hinge about
+-y with range [-160, -2] degrees and armature 0.006, started at 0 (2 degrees past the upper side). At the default
+``solref`` (0.02 s, damping ratio 1) and ``solimp`` (impedance 0.95 this deep) MuJoCo's limit accelerates it as the
+critically damped ``a = -imp (B v + K imp r)`` (``B = 105 /s``, ``K = 2770 /s^2``): 0.39 rad/s after 6 ms, and the
+limit lets go at 0.64 rad/s, once the damper would have to pull. The old stiff limits kicked it to 6.3 rad/s
+(spring) and 36 rad/s (XPBD) in 6 ms.
+"""
+
+import mujoco
+import numpy as np
+import pytest
+import torch
+
+import torchsim
+from models import F64
+
+MJ_DT = 1e-4  # MuJoCo's reference step: its release rates are within 0.2% of its own at 0.02 ms
+STEP = 0.002  # torchsim's step, 4 substeps of 0.5 ms (the engine's default substep)
+
+
+def knee(gravity="0 0 0", solref="0.02 1", solimp="0.9 0.95 0.001 0.5 2", margin=0.0):
+    return f"""<mujoco><option timestep="{STEP}" gravity="{gravity}"/><worldbody><body pos="0 0 1">
+      <joint type="hinge" axis="0 -1 0" range="-160 -2" armature="0.006" solreflimit="{solref}"
+             solimplimit="{solimp}" margin="{margin}"/>
+      <geom type="capsule" fromto="0 0 0 0 0 -0.3" size="0.049" mass="2" contype="0" conaffinity="0"/>
+      <geom type="sphere" pos="0 0 -0.35" size="0.075" mass="1" contype="0" conaffinity="0"/>
+    </body></worldbody></mujoco>"""
+
+
+def loaded_pendulum(solref="0.02 1"):
+    """The frictionloss tests' pendulum (gravity torque 7.36 N m at the horizontal, inertia 0.344 kg m^2) on a
+    hinge about y whose upper limit is the horizontal: gravity holds it on the limit."""
+    return f"""<mujoco><option timestep="{STEP}"/><worldbody><body pos="0 0 1">
+      <joint type="hinge" axis="0 1 0" range="-90 0" solreflimit="{solref}"/>
+      <geom type="capsule" fromto="0 0 0 0.5 0 0" size="0.05" mass="1" contype="0" conaffinity="0"/>
+      <geom type="sphere" pos="0.5 0 0" size="0.1" mass="1" contype="0" conaffinity="0"/>
+    </body></worldbody></mujoco>"""
+
+
+def slider(gravity="0 0 -9.81"):
+    """A 2 kg box on a vertical slide with range [0, 0.5] m, armature 0.5 kg."""
+    return f"""<mujoco><option timestep="{STEP}" gravity="{gravity}"/><worldbody><body pos="0 0 1">
+      <joint type="slide" axis="0 0 1" range="0 0.5" armature="0.5"/>
+      <geom type="box" size="0.1 0.1 0.1" mass="2" contype="0" conaffinity="0"/>
+    </body></worldbody></mujoco>"""
+
+
+def mujoco_run(xml, q0, duration):
+    """MuJoCo's ``qpos[0]``, ``qvel[0]`` after every ``STEP``, stepping at ``MJ_DT`` from rest at ``q0``."""
+    m = mujoco.MjModel.from_xml_string(xml)
+    m.opt.timestep = MJ_DT  # the limit's gains were fixed at load, from the model's own timestep (refsafe)
+    d = mujoco.MjData(m)
+    d.qpos[0] = q0
+    q, qd = [], []
+    for _ in range(round(duration / STEP)):
+        for _ in range(round(STEP / MJ_DT)):
+            mujoco.mj_step(m, d)
+        q.append(d.qpos[0])
+        qd.append(d.qvel[0])
+    return np.array(q), np.array(qd)
+
+
+def torchsim_run(xml, q0, duration, method):
+    sys = torchsim.load_mjcf(xml, method=method, dtype=F64, substeps=4)
+    state = torchsim.init(sys, torch.full((1, 1), q0, dtype=F64), torch.zeros(1, 1, dtype=F64))
+    ctrl = torch.zeros(1, 0, dtype=F64)
+    q, qd = [], []
+    for _ in range(round(duration / STEP)):
+        state = torchsim.step(sys, state, ctrl)
+        q.append(state.q[0, 0].item())
+        qd.append(state.qd[0, 0].item())
+    assert not state.diverged.any()
+    return np.array(q), np.array(qd)
+
+
+@pytest.mark.parametrize("method, params", [
+    ("spring", {}), ("xpbd", {}),
+    # a wide, steep impedance curve and a margin: the limit acts 0.6 degrees early, its impedance falls as it lets go
+    ("spring", dict(solimp="0.8 0.99 0.05 0.3 3", margin=0.01, solref="0.03 0.7")),
+])
+def test_violated_limit_releases_at_mujoco_speed(method, params):
+    """Gravity off, 2 degrees past the limit: the rate after 6 ms, and its course over 50 ms (the release at 0.64
+    rad/s), within 5% of MuJoCo's top speed (MuJoCo at our 0.5 ms substep differs from its 0.02 ms run by 1.1%); the
+    angle within 5% of MuJoCo's travel. A limit 10% stiffer (solref 0.018 s) misses them by 21%, 15% and 14%, the
+    old stiff limits by 10-90x (6.3 and 36 rad/s after 6 ms on the humanoid's knee)."""
+    mj_q, mj_qd = mujoco_run(knee(**params), 0.0, 0.05)
+    q, qd = torchsim_run(knee(**params), 0.0, 0.05, method)
+    print(f"{method}: rate at 6 ms {qd[2]:.4f} (MuJoCo {mj_qd[2]:.4f}), at 50 ms {qd[-1]:.4f} ({mj_qd[-1]:.4f}) "
+          f"rad/s; max rate error {abs(qd - mj_qd).max():.4f} rad/s, angle {abs(q - mj_q).max():.2e} rad")
+    top = abs(mj_qd).max()
+    assert abs(qd[2] - mj_qd[2]) < 0.05 * abs(mj_qd[2])
+    assert abs(qd - mj_qd).max() < 0.05 * top
+    assert abs(q - mj_q).max() < 0.05 * abs(mj_q).max()
+
+
+@pytest.mark.parametrize("method", ["spring", "xpbd"])
+def test_loaded_limit_gives_way_as_far_as_mujocos(method):
+    """Gravity holds the pendulum on its limit: MuJoCo's limit settles where ``imp aref + (1 - imp) a0 = 0``, here
+    0.59 mrad past it (imp 0.93 on solimp's curve). The depth does not depend on the step, so it must match within
+    3% over the last 0.1 s (measured: to 4 digits): a time constant 10% longer settles 11% deeper, half of it 2.6x
+    shallower. The old limits missed it far: XPBD's projection held it at 0; the spring method's stiff spring
+    (``0.2 / (h^2 w)``, ``w`` ~ 16 /(kg m^2) about the link's COM) would hold it ~0.15 mrad deep, and the tendons'
+    explicit soft force (no ``a0``) would sink it ``1 / (1 - imp)`` = 15x deeper."""
+    mj_q, _ = mujoco_run(loaded_pendulum(), 0.0, 0.3)
+    q, _ = torchsim_run(loaded_pendulum(), 0.0, 0.3, method)
+    depth, mj_depth = q[-50:], mj_q[-50:]
+    print(f"{method}: depth past the limit {depth.mean() * 1e3:.4f} mrad (MuJoCo {mj_depth.mean() * 1e3:.4f}), "
+          f"spread {np.ptp(depth) * 1e3:.2e} mrad")
+    assert 0.0 < mj_depth.mean() and np.ptp(mj_depth) < 0.01 * mj_depth.mean()  # MuJoCo at rest on the limit
+    assert abs(depth - mj_depth.mean()).max() < 0.03 * mj_depth.mean()
+
+
+@pytest.mark.parametrize("method", ["spring", "xpbd"])
+def test_slide_limit_releases_and_holds_as_mujocos(method):
+    """The box on a vertical slide: started 2 cm below its range with gravity off it is released as MuJoCo's (rate
+    within 5% of MuJoCo's top speed over 50 ms); under gravity it rests on the limit as deep as MuJoCo's (3%, as the
+    hinge's)."""
+    mj_q, mj_qd = mujoco_run(slider(gravity="0 0 0"), -0.02, 0.05)
+    q, qd = torchsim_run(slider(gravity="0 0 0"), -0.02, 0.05, method)
+    print(f"{method}: rate at 6 ms {qd[2]:.4f} (MuJoCo {mj_qd[2]:.4f}), at 50 ms {qd[-1]:.4f} ({mj_qd[-1]:.4f}) m/s")
+    assert abs(qd - mj_qd).max() < 0.05 * abs(mj_qd).max()
+    mj_q, _ = mujoco_run(slider(), 0.0, 0.3)
+    q, _ = torchsim_run(slider(), 0.0, 0.3, method)
+    print(f"{method}: depth under its weight {-q[-50:].mean() * 1e3:.4f} mm (MuJoCo {-mj_q[-50:].mean() * 1e3:.4f})")
+    assert abs(q[-50:] - mj_q[-50:].mean()).max() < 0.03 * abs(mj_q[-50:].mean())
