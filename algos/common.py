@@ -62,13 +62,14 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     or in MuJoCo C if ``cfg.physics == "mujoco"`` (``torchsim.mujoco_stepper``: the same task code on MuJoCo's
     physics); ``like``: an env whose stepper (System and compiled step) this one shares, for any ``num_envs`` above
     1."""
+    physics = cfg.get("physics", "torchsim")  # checkpoints from before the key ran on torchsim
+    if physics not in ("torchsim", "mujoco"):
+        raise ValueError(f"physics must be 'torchsim' or 'mujoco', got {physics!r}")
     if like is not None:
         stepper = like.base_env.stepper
-    elif cfg.get("physics", "torchsim") == "mujoco":
+    elif physics == "mujoco":
         probe = torchsim.envs.make(cfg.env.name, device=device)  # its System and MuJoCo model, in the env's dtype
         stepper = MujocoStepper(probe.base_sys, probe.mj_model)
-    elif cfg.get("physics", "torchsim") != "torchsim":
-        raise ValueError(f"physics must be 'torchsim' or 'mujoco', got {cfg.physics!r}")
     else:
         stepper = "auto" if cfg.compile else "eager"
     base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length,
