@@ -22,10 +22,12 @@ from test_train import QUIET, config
 from torchsim.algos.train import run
 
 
-def test_evaluation_reuses_the_training_graph(tmp_path, caplog):
+def test_evaluation_reuses_the_training_graph(tmp_path, caplog, monkeypatch):
     """PPO with ``compile=true``: the training env builds the step (one C++ step kernel, for any batch size) once;
     the evaluation env, with another batch size and the training env's System, builds nothing more, though it is
-    evaluated at the first and the last iteration; dynamo compiles nothing of the physics."""
+    evaluated at the first and the last iteration; dynamo compiles nothing of the physics. The step cache is empty
+    (an earlier test or run may have stored this kernel, which would then load instead of build)."""
+    monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path / "step_cache"))
     cfg = config("algo=ppo", "env=inverted_pendulum", "algo.num_envs=8", "algo.unroll=2", "algo.minibatches=2",
                  "budget.env_steps=32", "eval.max_steps=5", "eval.episodes=3", "eval.at_start=true", *QUIET,
                  "compile=true")
