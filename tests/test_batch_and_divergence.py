@@ -22,12 +22,7 @@ def _ant_inputs(sys, steps):
     return q, qd, ctrl
 
 
-# xpbd's soft joint limits (commit bc3c5bb) destabilise the Ant from random start states (every env diverges here;
-# its joints part by 3 cm in test_kinematics); found by CI at the end of the session that made them, open (issue 27)
-XPBD_LIMITS_DEFECT = pytest.mark.xfail(strict=True, reason="xpbd soft joint limits destabilise the Ant (issue 27)")
-
-
-@pytest.mark.parametrize("method", [pytest.param(m, marks=XPBD_LIMITS_DEFECT) if m == "xpbd" else m for m in METHODS])
+@pytest.mark.parametrize("method", METHODS)
 def test_batch_independence(method):
     sys = torchsim.load_mjcf(str(ANT), method=method, dtype=F64)
     steps = 20

@@ -126,7 +126,7 @@ def test_stepped_q_roundtrip(name, method):
 
 @pytest.mark.parametrize("method", METHODS)
 @pytest.mark.parametrize("name", list(MODELS))
-def test_stepped_state_reinit_reproduces_poses(name, method, request):
+def test_stepped_state_reinit_reproduces_poses(name, method):
     """init(sys, state.q, state.qd) after actuated steps reproduces the poses up to the joints' residuals.
 
     Maximal coordinates hold joints only as well as the solver does, so re-placing bodies from q moves each one
@@ -135,8 +135,6 @@ def test_stepped_state_reinit_reproduces_poses(name, method, request):
     dof at random in the air: measured xpbd 0.36 mm / 3.6e-3 rad, spring 1.1 mm / 0.025 rad (its joints are
     springs: full 150 N m on the ant's 0.04 kg legs stretches them); asserted 2 mm / 0.04 rad.
     """
-    if (name, method) == ("ant", "xpbd"):  # test_batch_and_divergence.XPBD_LIMITS_DEFECT: joints part by 3 cm
-        request.applymarker(pytest.mark.xfail(strict=True, reason="xpbd soft joint limits destabilise the Ant"))
     from torchsim.kinematics import joint_frames, with_world
     from torchsim.lanes import to_lanes
 

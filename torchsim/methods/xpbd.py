@@ -36,7 +36,7 @@ def _slot_limits(sys: System, colour: torch.Tensor, fr, limits: joint_space.Limi
     The row's compliance (:func:`project_joints`) is MuJoCo's ``R`` times ``1 + J W`` (``J`` the armature, ``W``
     the row's diagonal in the Schur complement, its inverse inertia with the anchor held): the rotor rides with the
     dof, so the row moves it by ``W_J / (W_J + R)`` of its lead, ``W_J = W / (1 + J W)`` its inverse inertia with
-    the rotor, as MuJoCo's limit does."""
+    the rotor, as MuJoCo's limit does (the rotor's own share: :func:`_rotor_rates`)."""
     slots = sys.jnt_slot_dof[colour][:, 3:]
     has_dof = lanes.param(slots >= 0, 1, 1)
     dof = slots.T.reshape(-1).clamp_min(0)
@@ -62,11 +62,10 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, limit
     relative rotation onto the slots' axes ``A``) are solved together by 3x3 Schur complements. A rotation row is
     hard for a constrained direction, compliant (XPBD's compliance: MuJoCo's soft limit) for a dof whose limit
     pushes, and absent for a free dof. Bodies are lanes (``(3|4, N + 1, B)``); per joint of a colour, the rows are
-    vectors ``(3, K, B)`` and the blocks matrices ``(3, 3, K, B)``. With ``limits``, also returns how far the
-    limits moved each dof ``(D, B)`` and their rows' accumulated ``impulse`` (passed in: from the substep's earlier
-    passes, XPBD's ``lambda``, so that further passes converge to the compliant row rather than stiffen it).
+    vectors ``(3, K, B)`` and the blocks matrices ``(3, 3, K, B)``. With ``limits``, also returns their rows'
+    accumulated ``impulse`` ``(D, B)`` (passed in: from the substep's earlier passes, XPBD's ``lambda``, so that
+    further passes converge to the compliant row rather than stiffen it).
     """
-    moved = None if limits is None else torch.zeros_like(goal)
     for colour in sys.jnt_colors:
         child, parent = sys.jnt_child[colour], sys.jnt_parent[colour]
         fr = joint_frames(sys, bodies, colour)
@@ -111,16 +110,27 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, limit
             schur = schur + eye * compliance[None]
             rhs_s = rhs_s - compliance * held
         mu = spatial.matvec(spatial.inv3(schur), rhs_s - spatial.matvec(bt_ainv, rhs_l))
-        if limits is not None:  # a compliant row ends where its lead is -compliance times its impulse
-            dq = torch.where(pushing, -lead - compliance * (held + mu), 0.0)
-            moved = moved.index_add(0, dof, dq.reshape(-1, dq.shape[-1]))
-            impulse = impulse.index_add(0, dof, torch.where(pushing, mu, 0.0).reshape(-1, dq.shape[-1]))
+        if limits is not None:
+            impulse = impulse.index_add(0, dof, torch.where(pushing, mu, 0.0).reshape(-1, mu.shape[-1]))
         p_lin = spatial.matvec(a_inv, rhs_l - spatial.matvec(b, mu))
         p_ang = spatial.matvec(gt, mu)
         if sys.jnt_has_offsets:
             p_ang = p_ang + hinge_anchors.turn_moment(fr.anchor_turn, a1, p_lin)
         bodies = rigid.apply_pair_position(bodies, inv, child, parent, fr.r_child, fr.r_parent, p_lin, p_ang)
-    return bodies if limits is None else (bodies, moved, impulse)
+    return bodies if limits is None else (bodies, impulse)
+
+
+def _rotor_rates(sys: System, limits: joint_space.LimitRows, qd_free: torch.Tensor) -> torch.Tensor:
+    """The hinge rotors' rates ``(D, B)`` after the limits: a limit that pushes takes its rotor from the rate
+    ``qd_free`` to MuJoCo's ``imp target + (1 - imp) qd_free`` (``A0 / (A0 + R) = imp``, :func:`joint_space.limit_rows`),
+    the rate its row moves the link at (:func:`_slot_limits`) when the other joints hold still.
+
+    Not the row's own move: Gauss-Seidel lets the next colours turn the link's neighbours back (a light thigh
+    between the hip's and the knee's rows), the row pushes again in the next pass, and a heavy rotor riding with
+    every push would gain the ping-pong as speed (the ant's ankles spun up to 1800 rad/s in one step)."""
+    a0 = lanes.param(sys.dof_invweight, 1)
+    push = limits.active & (limits.sign * (limits.target - qd_free) > 0)
+    return torch.where(push, qd_free + a0 / (a0 + limits.reg) * (limits.target - qd_free), qd_free)
 
 
 def correct_slides(sys: System, bodies: Bodies, inv: rigid.InverseInertia, q_pred: torch.Tensor,
@@ -212,19 +222,19 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
     inv = rigid.inverse_inertia(sys, moved.x_quat, inv_inertia_body)
     limits = joint_space.limit_rows(sys, q, qd, h) if sys.dof_limits else None
     goal = None if limits is None else q + h * limits.target  # where each limit's reference rate takes its dof
-    rotor_ref, impulse = qd_pred, None if limits is None else torch.zeros_like(goal)
+    impulse = None if limits is None else torch.zeros_like(goal)
     for _ in range(sys.xpbd_iterations):
         moved, con, active, scale_a, scale_b = project_contacts(sys, moved, bodies, inv)
         if limits is None:
             moved = project_joints(sys, moved, inv)
         else:
-            moved, dq, impulse = project_joints(sys, moved, inv, limits, goal, impulse)
-            rotor_ref = rotor_ref + dq / h  # the rotors rode with the limits' moves (_slot_limits)
+            moved, impulse = project_joints(sys, moved, inv, limits, goal, impulse)
     if sys.jnt_has_slides:
         moved = correct_slides(sys, moved, inv, q_pred, limits, goal)
     xd_vel = (moved.x_pos - bodies.x_pos) / h
     xd_ang = spatial.quat_to_rot_vec(spatial.quat_mul(moved.x_quat, spatial.quat_conj(bodies.x_quat))) / h
     moved = stop_contacts(moved._replace(xd_vel=xd_vel, xd_ang=xd_ang), inv, con, active, scale_a, scale_b)
+    rotor_ref = qd_pred if limits is None else _rotor_rates(sys, limits, qd_pred)
     moved, _ = joint_space.hinge_rate_solve(sys, moved, inv, fr, rotor_ref, torch.zeros_like(qd_pred))
     return moved
 
