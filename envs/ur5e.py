@@ -65,9 +65,8 @@ class UR5eReach(TorchsimEnv):
     controller compensates gravity) and the action scaled so that ``|a| = 1`` asks for the joint's full effort
     (150 N m, wrists 28 N m). So ``a = 0`` holds the arm still and ``a`` acts as a joint-velocity command, up to
     ``effort / kd`` = 0.75 rad/s (wrists 0.7 rad/s; ~0.5 rad/s measured at ``a = 1``, the target being re-based
-    once per step). Targets are relative to the measured angles because a substep reads these hinges' angles
-    within one turn, (-pi, pi]: absolute targets would snap across that seam. Servo stiffness is Menagerie's; its damping (400/100)
-    is halved, since with the force clipped to the effort the damping caps the speed (Menagerie's: 0.38 rad/s).
+    once per step). Servo stiffness is Menagerie's; its damping (400/100) is halved, since with the force clipped
+    to the effort the damping caps the speed (Menagerie's: 0.38 rad/s).
 
     Observation (30): cos and sin of the 6 joint angles, the 6 joint rates, the tool position, the target, target
     minus tool (world frame, metres), and target minus tool again in units of 5 cm, clipped to [-1, 1]. That last
@@ -78,9 +77,8 @@ class UR5eReach(TorchsimEnv):
     tool ends the episode within 2 cm of the target (``goal_distance``). No termination. Reset: ``HOME`` +
     U(-0.1, 0.1) rad, rates 0.1 N(0, 1); the target stays fixed for the episode (``task``), drawn from a pool of
     ``tool0`` positions at uniformly random joint angles within the URDF limits, kept if ``z >= 0.05`` m and at
-    least 0.2 m from the base axis: reachable by construction. The substeps read these angles within one turn, so the
-    joints' limits (+-2 pi; the elbow's +-pi sits on the seam) are effectively never met: the joints turn freely
-    (``state.q`` counts the turns), and there is no self-collision.
+    least 0.2 m from the base axis: reachable by construction. The joints' limits (+-2 pi, the elbow's +-pi) hold as
+    in MuJoCo (a substep reads each angle continuously, ``kinematics.dof_angles``); there is no self-collision.
 
     Physics: the spring method at 1 ms substeps (2 per 2 ms timestep). XPBD is not used: on this arm it lags MuJoCo
     (a 0.4 s passive fall differs by 0.12 rad at 0.5 ms substeps; under the servos the shoulder barely turns while
@@ -149,11 +147,8 @@ class UR5eReach(TorchsimEnv):
         return ((moment * axis[:, :, None]).sum(-1) * self.carried).sum(-1)
 
     def _hold_target(self, state):
-        """Servo targets ``(B, 6)`` that hold the arm still in ``state``: the angles plus the gravity offset. The
-        angles as a substep reads them, in (-pi, pi] (the joints' +-2 pi ranges span two turns, so the engine's
-        servos see the angle within one: ``kinematics.dof_angles``); ``state.q`` runs on through full turns."""
-        angle = torch.atan2(torch.sin(state.q), torch.cos(state.q))
-        return angle - self._gravity_force(state) / self.kp
+        """Servo targets ``(B, 6)`` that hold the arm still in ``state``: the angles plus the gravity offset."""
+        return state.q - self._gravity_force(state) / self.kp
 
     def _ctrl(self, action):
         return self._hold_target(self.state) + self.max_offset * action.clamp(-1.0, 1.0)

@@ -39,7 +39,6 @@ import dataclasses
 import math
 import os
 import time
-import warnings
 from pathlib import Path
 
 import mujoco
@@ -237,9 +236,7 @@ def mujoco_run(scene: Scene, h: float, integrator: str) -> tuple[dict, bool]:
 
 
 def load(scene: Scene, h: float, method: str) -> torchsim.System:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")  # unlimited hinges turning: nothing here reads q
-        return torchsim.load_mjcf(scene.mjcf(h), method=method, substeps=1, dtype=torch.float64)
+    return torchsim.load_mjcf(scene.mjcf(h), method=method, substeps=1, dtype=torch.float64)
 
 
 def torchsim_run(scene: Scene, h: float, method: str) -> tuple[dict, bool]:

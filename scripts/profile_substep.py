@@ -67,26 +67,27 @@ def timed(fn, args, repeats):
     return compile_s, statistics.median(times)
 
 
-def spring_stages(sys, bodies, ctrl, terms, h):
+def spring_stages(sys, bodies, q, ctrl, terms, h):
     """(name, function, args) for each stage of ``spring.substep`` (and of ``spring.step_terms``, once per step),
-    with inputs computed eagerly once."""
+    with inputs computed eagerly once; ``q (nq, B)``: the bodies' coordinates."""
     from torchsim import integrator, joint_space, rigid
-    from torchsim.kinematics import dof_values, joint_frames
+    from torchsim.kinematics import dof_angles, dof_values, joint_frames
     from torchsim.methods import spring
 
     inv = rigid.inverse_inertia(sys, bodies.x_quat, terms.inv_inertia_body)
     fr = joint_frames(sys, bodies, all_slots=False, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
-    force, torque = spring.joint_wrench(sys, bodies, fr, terms.joint_gain, h)
+    angles = dof_angles(sys, dof_values(sys, fr.q), terms.window)
+    force, torque = spring.joint_wrench(sys, bodies, fr, terms.joint_gain, h, inv)
     after = integrator.velocity_update(sys, bodies, inv, force, torque, h)
     return [
-        ("step terms (once per step)", lambda b: spring.step_terms(sys, b, h), (bodies,)),
+        ("step terms (once per step)", lambda b, q: spring.step_terms(sys, b, q, h), (bodies, q)),
         ("inverse inertias", lambda b: rigid.inverse_inertia(sys, b.x_quat, terms.inv_inertia_body), (bodies,)),
         ("joint frames", lambda b, r: joint_frames(sys, b, all_slots=False, rot=r), (bodies, inv.rot)),
-        ("actuator forces", lambda b, f: spring.dof_force_wrench(sys, b, f, axes, ctrl), (bodies, fr)),
-        ("joint springs", lambda b, f: spring.joint_wrench(sys, b, f, terms.joint_gain, h), (bodies, fr)),
+        ("actuator forces", lambda b, f: spring.dof_force_wrench(sys, b, f, axes, angles, ctrl), (bodies, fr)),
+        ("joint springs", lambda b, f: spring.joint_wrench(sys, b, f, terms.joint_gain, h, inv), (bodies, fr)),
         ("velocity update", lambda b, f, t: integrator.velocity_update(sys, b, inv, f, t, h), (bodies, force, torque)),
-        ("armature and damping", lambda b, a, f: joint_space.inertia_and_damping(sys, b, a, f, inv, h)[0],
+        ("armature and damping", lambda b, a, f: joint_space.inertia_and_damping(sys, b, a, f, inv, h, angles)[0],
          (bodies, after, fr)),
         ("contacts", lambda a, r: spring.contact_impulses(sys, a, terms.loaded, r), (after, inv.rot)),
         ("positions", lambda a: integrator.integrate_positions(a, h), (after,)),
@@ -113,7 +114,8 @@ def main():
     ctrl = to_lanes(2 * torch.rand(args.batch, sys.nu) - 1).contiguous()
     bodies = with_world(*(to_lanes(x, 1) for x in state[:4]))  # the engine's lanes layout, as step makes it
     h = sys.substep_timestep
-    terms = METHODS[args.method].step_terms(sys, bodies, h)  # what a step's substeps share
+    q_lanes = to_lanes(state.q)
+    terms = METHODS[args.method].step_terms(sys, bodies, q_lanes, h)  # what a step's substeps share
     options = {"cpp_wrapper": not args.no_cpp_wrapper} | ({"cpp.simdlen": 1} if args.scalar else {})
 
     def compiled(fn):
@@ -127,7 +129,7 @@ def main():
     compile_s, sec = timed(substep, (sys, bodies, ctrl, terms, h), args.repeats)
     print(f"substep: {sec * 1e3:.2f} ms (compile {compile_s:.0f} s)")
     if args.part_sizes:
-        per_env = time_part_sizes(substep, METHODS[args.method].step_terms, sys, bodies, ctrl, h,
+        per_env = time_part_sizes(substep, METHODS[args.method].step_terms, sys, bodies, q_lanes, ctrl, h,
                                   args.part_sizes, args.repeats)
         for p, us in per_env.items():
             print(f"  parts of {p:5d}: {us:.2f} us per env and substep "
@@ -142,7 +144,7 @@ def main():
     if args.stages:
         if args.method != "spring":
             raise SystemExit("--stages times the spring substep's stages; use --method spring")
-        for name, fn, fn_args in spring_stages(sys, bodies, ctrl, terms, h):
+        for name, fn, fn_args in spring_stages(sys, bodies, q_lanes, ctrl, terms, h):
             compile_s, sec = timed(compiled(fn), fn_args, args.repeats)
             print(f"  {name:26s} {sec * 1e3:7.2f} ms (compile {compile_s:.0f} s)")
 
@@ -195,14 +197,14 @@ def count_ops(substep, args) -> collections.Counter:
     return per_stage
 
 
-def time_part_sizes(substep, step_terms, sys, bodies, ctrl, h, sizes, repeats):
+def time_part_sizes(substep, step_terms, sys, bodies, q, ctrl, h, sizes, repeats):
     """Microseconds per env and substep with the batch cut into whole parts of each of ``sizes`` (each part's
     ``step_terms`` built once, untimed)."""
     from torchsim.kinematics import Bodies
 
     def part(a, p):
         part_bodies = Bodies(*(x[..., a:a + p].contiguous() for x in bodies))
-        return part_bodies, ctrl[..., a:a + p].contiguous(), step_terms(sys, part_bodies, h)
+        return part_bodies, ctrl[..., a:a + p].contiguous(), step_terms(sys, part_bodies, q[..., a:a + p], h)
 
     batch = ctrl.shape[-1]
     jobs = {p: [part(a, p) for a in range(0, batch - p + 1, p)] for p in sizes}

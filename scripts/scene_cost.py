@@ -64,7 +64,7 @@ def substep_cost(env) -> CostCounter:
     bodies = with_world(*(to_lanes(x[:1], 1) for x in state[:4]))
     ctrl = torch.zeros(sys.nu, 1, dtype=sys.dtype)
     h = sys.substep_timestep
-    terms = METHODS[sys.method].step_terms(sys, bodies, h)  # once per step, not counted
+    terms = METHODS[sys.method].step_terms(sys, bodies, to_lanes(state.q[:1]), h)  # once per step, not counted
     counter = CostCounter()
     with counter:
         METHODS[sys.method].substep(sys, bodies, ctrl, terms, h)

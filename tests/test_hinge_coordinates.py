@@ -94,3 +94,27 @@ def test_range_past_half_a_turn_from_ref_is_enforced_like_mujoco(method):
     overshoot, mj_overshoot = max(angles) - upper, max(reference) - upper
     assert mj_overshoot > 0.05 and abs(overshoot - mj_overshoot) < 0.1 * mj_overshoot
     assert abs(angles[-1] - reference[-1]) < 1e-4  # both come to rest 0.76 mrad past the limit (to 7e-6 rad)
+
+
+# An unlimited hinge with a spring (springref 0), started at rest 4 rad round: MuJoCo's spring turns it back through
+# 0. A substep that read the angle within half a turn of ref saw 4 - 2 pi and drove it on to 2 pi instead.
+SPRUNG = """
+<mujoco><option timestep="0.002" gravity="0 0 0"/><worldbody>
+  <body><joint name="hinge" type="hinge" axis="0 0 1" stiffness="0.5" damping="0.05"/>
+    <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02"/>
+  </body></worldbody></mujoco>"""
+
+
+@pytest.mark.parametrize("method", METHODS)
+def test_spring_on_unlimited_hinge_sees_angle_past_half_a_turn_like_mujoco(method):
+    m = mujoco.MjModel.from_xml_string(SPRUNG)
+    d = mujoco.MjData(m)
+    d.qpos[0] = 4.0
+    sys = torchsim.load_mjcf(SPRUNG, method=method, dtype=F64)
+    state = torchsim.init(sys, torch.tensor([[4.0]], dtype=F64), torch.zeros(1, 1, dtype=F64))
+    ctrl = torch.zeros(1, 0, dtype=F64)
+    for _ in range(250):
+        mujoco.mj_step(m, d)
+        state = torchsim.step(sys, state, ctrl)
+    assert d.qpos[0] < 3.0  # the scene does what the test is about: the spring pulls it back past pi
+    assert abs(state.q[0, 0].item() - d.qpos[0]) < 0.02 * (4.0 - d.qpos[0])

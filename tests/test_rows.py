@@ -31,7 +31,7 @@ def _substep_inputs(path, batch=3, seed=0):
     bodies = with_world(*(to_lanes(x, 1) for x in state[:4]))
     ctrl = to_lanes(torch.tensor(rng.uniform(-1, 1, (batch, sys.nu)))).contiguous()
     h = sys.substep_timestep
-    leaves, spec = pytree.tree_flatten((bodies, ctrl, SPRING.step_terms(sys, bodies, h)))
+    leaves, spec = pytree.tree_flatten((bodies, ctrl, SPRING.step_terms(sys, bodies, to_lanes(state.q), h)))
     return sys, leaves, spec, h
 
 

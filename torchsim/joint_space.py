@@ -20,7 +20,7 @@ from typing import NamedTuple
 import torch
 
 from torchsim import lanes, spatial, rigid
-from torchsim.kinematics import Bodies, JointFrames, dof_angles, dof_hinge_rows, dof_values
+from torchsim.kinematics import Bodies, JointFrames, dof_hinge_rows, dof_values
 from torchsim.system import System
 from torchsim.tendons import impedance
 
@@ -210,16 +210,17 @@ def armature_impulse(sys: System, inv: rigid.InverseInertia, axes: torch.Tensor,
 
 
 def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,
-                        h: float, soft_limits: bool = True):
-    """Armature, implicit damping, dry friction and (``soft_limits``) the soft limits on one substep's force-driven
-    velocity change, for all dofs; ``frames`` measured at the substep start. Returns bodies and dof rates ``(D, B)``.
-    (XPBD solves the limits in its projection instead, where the joints hold: an impulse here turns a link about its
-    COM, and the projection would keep only ``I_com / I_pivot`` of it.)"""
+                        h: float, q: torch.Tensor | None = None):
+    """Armature, implicit damping, dry friction and (given the dof coordinates ``q (D, B)`` at the substep start,
+    ``kinematics.dof_angles``) the soft limits on one substep's force-driven velocity change, for all dofs;
+    ``frames`` measured at the substep start. Returns bodies and dof rates ``(D, B)``. (XPBD solves the limits in
+    its projection instead, where the joints hold: an impulse here turns a link about its COM, and the projection
+    would keep only ``I_com / I_pivot`` of it.)"""
     qd = dof_values(sys, frames.qd)
     friction_h = h * lanes.param(sys.dof_frictionloss, 1) if sys.dof_friction_hinges.shape[0] else None
     limits = None
-    if sys.dof_limits and soft_limits:
-        limits = limit_rows(sys, dof_angles(sys, dof_values(sys, frames.q)), qd, h)
+    if sys.dof_limits and q is not None:
+        limits = limit_rows(sys, q, qd, h)
     after, rates = hinge_rate_solve(sys, after, inv, frames, qd, h * lanes.param(sys.dof_damping, 1), friction_h,
                                     limits)
     if sys.jnt_has_slides:

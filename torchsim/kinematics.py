@@ -255,24 +255,31 @@ def dof_values(sys: System, per_joint: torch.Tensor) -> torch.Tensor:
     return per_joint.flatten(-3, -2).index_select(-2, sys.dof_flat)
 
 
-def dof_angles(sys: System, q_zero: torch.Tensor) -> torch.Tensor:
+def dof_window(sys: System, q_near: torch.Tensor) -> torch.Tensor:
+    """Where a step reads dof coordinates ``(2, D, B)`` (:func:`dof_angles`): each dof's value in ``q_near (nq, B)``
+    (the step's starting ``q``), its window's centre, and ``ref - centre`` less whole turns (once per step)."""
+    centre = q_near.index_select(0, sys.dof_qpos)
+    gap = lanes.param(sys.dof_ref, 1) - centre
+    return torch.stack((centre, torch.atan2(torch.sin(gap), torch.cos(gap))))
+
+
+def dof_angles(sys: System, q_zero: torch.Tensor, window: torch.Tensor) -> torch.Tensor:
     """Dof coordinates ``(D, B)`` (MuJoCo's, from ``ref``) for coordinates ``q_zero (D, B)`` measured from the zero
-    frame, hinge angles in ``(-pi, pi]``.
+    frame (hinge angles in ``(-pi, pi]``), in the step's ``window`` (:func:`dof_window`).
 
-    Body poses fix a hinge angle only within one turn. A substep reads it in ``(ref - pi, ref + pi]``, or, where
-    that would cut a hinge's range (dm_control's finger: [-1.92, 1.92] about ref -1.57), in a window centred on the
-    range (``System.dof_window_*``), so that limits, springs and servos see the angle the range means."""
-    if not sys.dof_has_windows:
-        return q_zero + lanes.param(sys.dof_ref, 1)
-    return in_window(sys, q_zero, lambda field: lanes.param(field, 1), lanes.param(sys.dof_is_hinge, 1))
+    Body poses fix a hinge angle only within one turn. A substep takes the one nearest the hinge's ``q`` at the step's
+    start, exact while a hinge turns less than half a turn per step (~300 rad/s at 10 ms): limits, springs and servos
+    see ``State.q``'s continuous angle, also past pi from ``ref`` (the reacher's joint1, range +-3 rad)."""
+    return in_window(q_zero, window, lanes.param(sys.dof_ref, 1), lanes.param(sys.dof_is_hinge, 1))
 
 
-def in_window(sys: System, q_zero: torch.Tensor, per_row, hinge: torch.Tensor) -> torch.Tensor:
-    """:func:`dof_angles` of rows ``q_zero``; ``per_row`` maps a ``(D,)`` dof field onto the rows (broadcasting with
-    ``q_zero``); rows where ``hinge`` is false (slides, empty slots) get ``q_zero + ref``."""
-    x = q_zero + per_row(sys.dof_window_shift)  # in (-2 pi, 2 pi]: one turn at most takes it into (-pi, pi]
+def in_window(q_zero: torch.Tensor, window: torch.Tensor, ref: torch.Tensor, hinge: torch.Tensor) -> torch.Tensor:
+    """:func:`dof_angles` of rows ``q_zero``, with ``window (2, *rows)`` and each row's ``ref`` and whether it is a
+    ``hinge`` broadcasting with them; other rows (slides, empty slots) get ``q_zero + ref``."""
+    centre, shift = window.unbind(0)
+    x = q_zero + shift  # in (-2 pi, 2 pi]: one turn at most takes it into (-pi, pi] (no round in the step's C++)
     x = torch.where(x > torch.pi, x - 2 * torch.pi, torch.where(x <= -torch.pi, x + 2 * torch.pi, x))
-    return torch.where(hinge, per_row(sys.dof_window_centre) + x, q_zero + per_row(sys.dof_ref))
+    return torch.where(hinge, centre + x, q_zero + ref)
 
 
 def dof_hinge_rows(sys: System, frames: JointFrames) -> torch.Tensor:
@@ -308,11 +315,7 @@ def read_q(sys: System, bodies: Bodies, frames: JointFrames, q_near: torch.Tenso
     com = spatial.quat_rotate(x_quat, lanes.param(sys.body_ipos[sys.free_body], 1, 1))
     lin = xd_vel - spatial.cross(ang, com)
     ball = sys.ball_joint
-    dof_q = dof_values(sys, frames.q) + lanes.param(sys.dof_ref, 1)
-    dof_q_near = q_near.index_select(0, sys.dof_qpos)
-    change = dof_q - dof_q_near  # atan2 wraps it to (-pi, pi] in ops the generated step code has (no round)
-    wrapped = dof_q_near + torch.atan2(torch.sin(change), torch.cos(change))
-    dof_q = torch.where(lanes.param(sys.dof_is_hinge, 1), wrapped, dof_q)
+    dof_q = dof_angles(sys, dof_values(sys, frames.q), dof_window(sys, q_near))
     # each part: its addresses and its lanes rows (component-major)
     q_parts = ((sys.dof_qpos, dof_q),
                (_addresses(sys.free_qpos, 7), torch.cat((x_pos - com, x_quat)).flatten(0, 1)),

@@ -89,7 +89,7 @@ def run_substeps(sys: System, state: State, ctrl: torch.Tensor, substep=None, fi
     substep, finish_step = substep or method.substep, finish_step or finish
     h = sys.substep_timestep
     bodies, ctrl = to_lanes(state, ctrl)
-    terms = method.step_terms(sys, bodies, h)
+    terms = method.step_terms(sys, bodies, lanes.to_lanes(state.q), h)
     if torch.compiler.is_compiling() and not records_grad(sys, state, ctrl):
         def body(i, *b):
             return i + 1, *substep(sys, Bodies(*b), ctrl, terms, h)

@@ -4,8 +4,8 @@ inputs of the function and its shared ones constants in it.
 The step is three row graphs (``torchsim.rows``) of the reference pipeline's own functions, chained by
 ``torchsim.row_code`` into one function that reads the public state and controls and writes the next state:
 
-1. the method's step terms, from the poses at the step's start (the terms every env shares fold into the substep
-   as constants; the per-env ones are rows);
+1. the method's step terms, from the poses and coordinates at the step's start (the terms every env shares fold
+   into the substep as constants; the per-env ones are rows);
 2. the substep, repeated ``sys.substeps`` times on rows that stay in registers and on the stack;
 3. ``pipeline.finish_lanes``: ``q, qd`` read back, divergence contained.
 
@@ -95,14 +95,15 @@ def _graphs(sys: System, where: list[tuple], state: State, ctrl: torch.Tensor, p
     bodies = with_world(*(lanes.to_lanes(x, 1) for x in state[:4]))
     shapes = [x.shape for x in bodies]
     poses = join_poses(bodies)
-    leaves, spec = pytree.tree_flatten(method.step_terms(sys, bodies, h))
+    q = lanes.to_lanes(state.q).contiguous()
+    leaves, spec = pytree.tree_flatten(method.step_terms(sys, bodies, q, h))
     per_env = [i for i, x in enumerate(leaves) if lanes.per_env(x)]
 
     def system(params):  # batch-first again for the System: lanes.param turns them back, row by row
         return sys.with_parameters(where, [lanes.from_lanes(x) for x in params])
 
-    def terms(poses, *params):
-        found = pytree.tree_flatten(method.step_terms(system(params), Bodies(*split_poses(poses, shapes)), h))[0]
+    def terms(poses, q, *params):
+        found = pytree.tree_flatten(method.step_terms(system(params), Bodies(*split_poses(poses, shapes)), q, h))[0]
         return tuple(found[i] for i in per_env)
 
     def substep(poses, ctrl, *terms_and_params):
@@ -121,7 +122,7 @@ def _graphs(sys: System, where: list[tuple], state: State, ctrl: torch.Tensor, p
 
     lanes_ctrl = lanes.to_lanes(ctrl).contiguous()
     params = [x.contiguous() for x in params]
-    graphs = (rows.row_graph(terms, [poses, *params]),
+    graphs = (rows.row_graph(terms, [poses, q, *params]),
               rows.row_graph(substep, [poses, lanes_ctrl, *(leaves[i] for i in per_env), *params]),
               rows.row_graph(finish, [*(x.contiguous() for x in pipeline.to_lanes_state(state)), poses, *params]))
     # where each pose row starts a step: a row of the state (input t, its lanes row), or the world body's
@@ -139,7 +140,7 @@ def _wire(program: row_code.Program, graphs, carried, count: int) -> row_code.Pr
     terms_graph, substep_graph, finish_graph = graphs
     params = [lambda r, k=k: ("input", 8 + k, r) for k in range(count)]
     start = [program.input_row(*c[1:]) if c[0] == "input" else c[1] for c in carried]
-    terms = program.add(terms_graph, [lambda r: ("value", start[r])] + params)
+    terms = program.add(terms_graph, [lambda r: ("value", start[r]), lambda r: ("input", 4, r)] + params)
     rows_now = program.loop(start)
     after = program.add(substep_graph, [lambda r: ("value", rows_now[r]), lambda r: ("input", 7, r)]
                         + [lambda r, k=k: ("value", terms[k][r]) for k in range(len(terms))] + params)

@@ -227,8 +227,9 @@ class Stepper:
         sys, h = self.sys, self.sys.substep_timestep
         method = METHODS[sys.method]
         bodies, ctrl = pipeline.to_lanes(state, ctrl)
-        _batch_dynamic((), bodies)  # the step terms' only per-env inputs
-        terms = self._compile("terms", _step_terms)(sys, bodies, h)
+        q = lanes.to_lanes(state.q)
+        _batch_dynamic((), (*bodies, q))  # the step terms' only per-env inputs
+        terms = self._compile("terms", _step_terms)(sys, bodies, q, h)
         inputs, spec = pytree.tree_flatten((ctrl, terms))
         shapes = [x.shape for x in bodies]
         # The controls and terms travel as two tensors, their per-env rows and their shared ones: a compiled call
@@ -274,9 +275,9 @@ class Stepper:
             return rows.compile_row_graph(substep, args, options, row_cache.content_key(sys, args, options, layout))
 
 
-def _step_terms(sys: System, bodies: Bodies, h: float):
+def _step_terms(sys: System, bodies: Bodies, q: torch.Tensor, h: float):
     """The method's step terms, as one function to compile."""
-    return METHODS[sys.method].step_terms(sys, bodies, h)
+    return METHODS[sys.method].step_terms(sys, bodies, q, h)
 
 
 @functools.cache

@@ -80,9 +80,6 @@ class System:
         dof_invweight: (D,) MuJoCo's ``dof_invweight0`` (its limit regulariser's scale).  dof_limits: whether any
         dof is limited (static structure: a model without limits does no limit work; ``joint_space.limit_rows``);
         dof_solimp_square: whether every solimp ``power`` is 2 (static: its impedance needs no exp and log).
-        dof_window_centre, dof_window_shift: (D,) the window ``(centre - pi, centre + pi]`` in which a substep reads
-        a hinge angle, and ``ref - centre`` less whole turns (``kinematics.dof_angles``); dof_has_windows: whether
-        any window is off ``ref`` (a range reaching past half a turn from it).
         dof_damping, dof_armature, dof_stiffness, dof_springref: (D,), batchable.
         dof_frictionloss: (D,) largest dry-friction force [N m | N] (MuJoCo ``frictionloss``), batchable; which dofs
         have friction is static structure decided at load: dof_friction_hinges (F,) the hinge dofs with nonzero
@@ -186,9 +183,6 @@ class System:
     dof_stiffness: torch.Tensor
     dof_springref: torch.Tensor
     dof_ref: torch.Tensor
-    dof_window_centre: torch.Tensor
-    dof_window_shift: torch.Tensor
-    dof_has_windows: bool
     dof_frictionloss: torch.Tensor
     dof_friction_hinges: torch.Tensor
     dof_friction_slides: bool

@@ -9,9 +9,9 @@ is harmless):
   (``torchsim.hinge_anchors``).
   ``range``, ``damping``, ``armature``, ``stiffness``/``springref`` and ``ref`` on hinges and slides.
   ``frictionloss`` on hinges and slides (not on free or ball joints, nor on tendons).
-- hinge angles run on through full turns in ``q`` (MuJoCo's ``qpos``); a hinge whose range is wider than a turn,
-  or an unlimited one driving a spring, tendon, equality or servo, is accepted with a warning
-  (``subset.warn_turning_hinges``).
+- hinge angles run on through full turns in ``q`` (MuJoCo's ``qpos``), and limits, springs, tendons, equalities
+  and servos see them so (also ranges wider than a turn) while a hinge turns less than half a turn per step
+  (``kinematics.dof_angles``).
 - actuators: joint transmission, no activation dynamics, ``gaintype="fixed"``, ``biastype="none"|"affine"``
   (covers ``motor``, ``position`` and ``velocity``), with ``gear``, ``ctrlrange`` and ``forcerange``.
 - tendons: ``<fixed>`` over hinges and slides, with ``stiffness``, ``springlength``, ``damping``,
@@ -43,7 +43,7 @@ from torchsim.io_mjcf.equality import equality_fields
 from torchsim.io_mjcf.fluid import fluid_fields
 from torchsim.io_mjcf.geoms import geom_fields
 from torchsim.io_mjcf.joints import joint_fields
-from torchsim.io_mjcf.subset import UnsupportedMJCFError, check_supported, warn_turning_hinges
+from torchsim.io_mjcf.subset import UnsupportedMJCFError, check_supported
 from torchsim.io_mjcf.tendons import tendon_fields
 from torchsim.methods import METHODS
 from torchsim.system import System
@@ -87,7 +87,6 @@ def load_mjcf(
         raise ValueError(f"unknown method {method!r}; expected one of {tuple(METHODS)}")
     m = _compile(source)
     check_supported(m)
-    warn_turning_hinges(m)
     substeps = substeps or max(1, int(np.ceil(m.opt.timestep / METHODS[method].default_substep_timestep - 1e-9)))
     fused, fields = fuse_bodies(m)
     joints, jnt_dof = joint_fields(m, fused)

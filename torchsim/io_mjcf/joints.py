@@ -21,7 +21,7 @@ JOINT_SHAPES = {"child": (), "parent": (), "anchor_child": (3,), "anchor_parent"
 #: per-dof fields (``dof_*``) and their dtypes
 DOF_DTYPES = {"flat": np.int64, "is_hinge": bool, "qpos": np.int64, "qvel": np.int64, "limited": bool,
               "range": float, "damping": float, "armature": float, "stiffness": float, "springref": float,
-              "ref": float, "frictionloss": float, "window_centre": float, "window_shift": float, "margin": float,
+              "ref": float, "frictionloss": float, "margin": float,
               "invweight": float, "solimp": float, "limit_gains": float}
 #: the per-dof fields with a value of more than one number, and its shape
 DOF_SHAPES = {"range": (2,), "solimp": (5,), "limit_gains": (2,)}
@@ -142,17 +142,11 @@ def _hinge_basis(axes: list) -> np.ndarray:
 def _dof(m, j, joint: int, slot: int) -> dict:
     """One dof's values (``DOF_DTYPES``, and its joint) for MuJoCo joint ``j`` in ``slot`` of torchsim ``joint``."""
     qpos, qvel = m.jnt_qposadr[j], m.jnt_dofadr[j]
-    ref, (lo, hi) = m.qpos0[qpos], m.jnt_range[j]
-    # the angle window of a substep's hinge angle (kinematics.dof_angles): (ref - pi, ref + pi], or centred on the
-    # range where that window would cut it
-    centre = ref
-    if m.jnt_type[j] == _HINGE and m.jnt_limited[j] and (lo <= ref - np.pi or hi > ref + np.pi):
-        centre = 0.5 * (lo + hi)
-    shift = ref - centre - 2 * np.pi * np.round((ref - centre) / (2 * np.pi))
+    ref = m.qpos0[qpos]
     return dict(flat=joint * 6 + slot, is_hinge=m.jnt_type[j] == _HINGE, qpos=qpos, qvel=qvel,
                 limited=bool(m.jnt_limited[j]), range=m.jnt_range[j], damping=m.dof_damping[qvel],
                 armature=m.dof_armature[qvel], stiffness=m.jnt_stiffness[j], springref=m.qpos_spring[qpos],
-                ref=ref, frictionloss=m.dof_frictionloss[qvel], window_centre=centre, window_shift=shift, jnt=joint,
+                ref=ref, frictionloss=m.dof_frictionloss[qvel], jnt=joint,
                 # the soft limit (joint_space.limit_rows): MuJoCo's gains at its own timestep, as its step has them
                 margin=m.jnt_margin[j], invweight=m.dof_invweight0[qvel], solimp=m.jnt_solimp[j],
                 limit_gains=solref_gains(m, m.jnt_solref[j:j + 1], m.jnt_solimp[j:j + 1])[0])
@@ -180,7 +174,6 @@ def _tensors(joints: list, dofs: list, ball: list, free: list, num_bodies: int) 
     out["jnt_kinds"] = tuple(bool(k) for k in out["jnt_mode"].numpy().any(0))
     out["jnt_has_slides"] = bool(out["jnt_slide_axes"].any())
     out["jnt_has_offsets"] = bool(out["jnt_anchor_offset"].any())
-    out["dof_has_windows"] = bool((out["dof_window_centre"] != out["dof_ref"]).any())
     frictional = out["dof_frictionloss"] != 0
     out["dof_friction_hinges"] = torch.nonzero(frictional & out["dof_is_hinge"]).reshape(-1)
     out["dof_friction_slides"] = bool((frictional & ~out["dof_is_hinge"]).any())

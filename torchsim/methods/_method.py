@@ -8,8 +8,9 @@ class Method(NamedTuple):
 
     Attributes:
         name: the ``method`` argument of ``torchsim.load_mjcf``.
-        step_terms: ``(sys, bodies, h) -> terms``: what a step's substeps share, built from the poses at the step's
-            start (``h``: the substep length [s], ``System.substep_timestep``).
+        step_terms: ``(sys, bodies, q, h) -> terms``: what a step's substeps share, built from the poses at the
+            step's start and their coordinates ``q (nq, B)`` (``h``: the substep length [s],
+            ``System.substep_timestep``).
         substep: ``(sys, bodies, ctrl, terms, h) -> bodies``: one substep, lanes layout.
         default_substep_timestep: the substep length [s] ``load_mjcf`` aims at (substeps = ceil(timestep / it)).
         strategies: the compiled strategies of ``torchsim.Stepper`` the method supports, the fastest first

@@ -5,7 +5,8 @@ Spring stiffness is set per joint from the effective mass it acts on and the sub
 (``kappa = System.joint_stiffness``, a fraction of the explicit stability limit), so light links get soft
 springs and heavy ones stiff springs, and the joint error scales as ``h^2``. The gains (and the inertias that size
 contact impulses) come from the poses at the step's start and are held for its substeps (:class:`StepTerms`): a
-sixth fewer element ops per substep on the ant (15,901 instead of 18,951), every accuracy check unchanged.
+sixth fewer element ops per substep on the ant (15,901 instead of 18,951), every accuracy check unchanged. The
+gains are held in each joint's lighter body's frame, so that they turn with a spinning link (:func:`gain_frame`).
 Contacts take Brax's impulse form: a normal impulse removing approaching velocity plus a Baumgarte term
 ``depth / (e timeconst)``, Coulomb-capped friction, impulses averaged over a body's active contacts.
 
@@ -21,7 +22,7 @@ from torchsim import hinge_anchors, integrator, joint_space, spatial, rigid
 from torchsim.actuators import dof_forces
 from torchsim.collision import contacts
 from torchsim.fluid import fluid_wrench
-from torchsim.kinematics import Bodies, JointFrames, dof_angles, dof_values, joint_frames
+from torchsim.kinematics import Bodies, JointFrames, dof_angles, dof_values, dof_window, joint_frames
 from torchsim.methods._method import Method
 from torchsim.system import System
 
@@ -71,9 +72,31 @@ def joint_gain(sys: System, fr: JointFrames, inv: rigid.InverseInertia) -> torch
     return _joint_gains(sys, k_lin, i.sum(-3), fr)
 
 
-def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tensor, h: float):
+def gain_frame(sys: System, inv: rigid.InverseInertia) -> torch.Tensor:
+    """The rotations ``(3, 3, 1, J, B)`` of the frames the joints' gains are held in: each joint's lighter body's
+    (the larger inverse mass; the child beside the static world), whose inverse inertia dominates the gain.
+
+    Held for a step, gains then turn with that body (:func:`joint_wrench`): a link spinning about its hinge (the
+    reacher's shoulder, driven to 200 rad/s) keeps the gains its inertia needs. Held in the world frame, a thin
+    link's gains went stale once it had turned ~0.2 rad within the step; its off-axis error then grew ~3x per
+    substep and the env diverged in a step (the reacher at 40 rad/s). Held in the heavier body's frame they go
+    stale as the light one turns against it (the pusher's 5 g wrist flex link, parent of a 0.18 kg roll link)."""
+    child, parent = sys.jnt_child, sys.jnt_parent
+    on_child = inv.mass.index_select(-2, child) >= inv.mass.index_select(-2, parent)  # (J, 1 | B)
+    return torch.where(on_child, inv.rot.index_select(-2, child), inv.rot.index_select(-2, parent)).unsqueeze(2)
+
+
+def held_gain(sys: System, gain: torch.Tensor, inv: rigid.InverseInertia) -> torch.Tensor:
+    """World-frame gains ``gain (3, 3, lin/ang, J, B)`` in the frames of :func:`gain_frame`."""
+    rot = gain_frame(sys, inv)
+    return spatial.mm(spatial.transpose(rot), gain, rot)
+
+
+def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tensor, h: float,
+                 inv: rigid.InverseInertia):
     """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of every joint's anchor spring and alignment spring, for
-    gain matrices ``gain (3, 3, lin/ang, J, B)`` (:func:`joint_gain`).
+    gain matrices ``gain (3, 3, lin/ang, J, B)`` held in the frames of :func:`gain_frame` (:func:`held_gain`) and
+    the substep's inverse inertias ``inv`` (their rotations and masses).
 
     The springs and dampers are ``kappa / h^2 K^-1`` and ``zeta / h K^-1`` with ``K`` the joint's inverse-inertia
     block in its constrained directions: every direction is corrected by the same fraction per substep, so thin
@@ -92,7 +115,9 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tenso
         rate = torch.stack((rate[:, 0] - turn_rate, rate[:, 1]), 1)
     err = torch.stack((fr.lin_err, fr.ang_err), 1)
     kappa, zeta = sys.joint_stiffness / (h * h), sys.joint_damping / h
-    force, torque = (-spatial.matvec(gain, kappa * err + zeta * rate)).unbind(1)
+    rot = gain_frame(sys, inv)  # (3, 3, 1, J, B): broadcast over lin/ang
+    correction = spatial.matvec(spatial.transpose(rot), kappa * err + zeta * rate)
+    force, torque = (-spatial.matvec(rot, spatial.matvec(gain, correction))).unbind(1)
     if sys.jnt_has_offsets:
         torque = torque + hinge_anchors.turn_moment(fr.anchor_turn, a1, force)
     moment = spatial.cross(r, force.unsqueeze(1)) + torque.unsqueeze(1)  # about each body's COM
@@ -130,38 +155,43 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia,
     return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
 
 
-def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, axes: torch.Tensor, ctrl: torch.Tensor):
+def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, axes: torch.Tensor, q: torch.Tensor,
+                     ctrl: torch.Tensor):
     """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of the dofs' generalized forces: actuators, passive springs
-    and tendons, for dof ``axes (3, D, B)`` and ``ctrl (U, B)``. (Limits are soft constraints solved with armature
-    and damping, ``joint_space.limit_rows``.)"""
-    q, qd = dof_angles(sys, dof_values(sys, fr.q)), dof_values(sys, fr.qd)
-    return rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, qd, ctrl))
+    and tendons, for dof ``axes (3, D, B)``, coordinates ``q (D, B)`` (``kinematics.dof_angles``) and ``ctrl (U, B)``.
+    (Limits are soft constraints solved with armature and damping, ``joint_space.limit_rows``.)"""
+    return rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, dof_values(sys, fr.qd), ctrl))
 
 
 class StepTerms(NamedTuple):
     """The spring gains and contact inertias of a step's substeps, built from the poses at the step's start and held
-    for its substeps; the errors and rates they multiply are measured every substep. ``J`` joints, ``D`` dofs.
+    for its substeps; the errors and rates they multiply are measured every substep. And the window in which the
+    substeps read the dofs' coordinates, around their values at the step's start. ``J`` joints, ``D`` dofs.
 
     Attributes:
         inv_inertia_body: (3, 3, N, 1 | B) body-frame inverse inertias (the world-frame ones are rebuilt every
             substep: the joint-space solve diverged on the reacher and pusher when it used a step's old ones).
         loaded: world-frame inverse masses and inertias with each hinge's armature on its child, for contacts
             (``joint_space.armature_loaded_inertia``).
-        joint_gain: (3, 3, lin/ang, J, B) joint spring gain matrices (:func:`joint_gain`).
+        joint_gain: (3, 3, lin/ang, J, B) joint spring gain matrices, each in its joint's lighter body's frame
+            (:func:`held_gain`).
+        window: (2, D, B) ``kinematics.dof_window``.
     """
 
     inv_inertia_body: torch.Tensor
     loaded: rigid.InverseInertia
     joint_gain: torch.Tensor
+    window: torch.Tensor
 
 
-def step_terms(sys: System, bodies: Bodies, h: float) -> StepTerms:
-    """:class:`StepTerms` at the poses of lanes ``bodies``."""
+def step_terms(sys: System, bodies: Bodies, q: torch.Tensor, h: float) -> StepTerms:
+    """:class:`StepTerms` at the poses of lanes ``bodies`` and their coordinates ``q (nq, B)``."""
     inv_inertia_body = rigid.body_inverse_inertia(sys)
     inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
     fr = joint_frames(sys, bodies, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
-    return StepTerms(inv_inertia_body, joint_space.armature_loaded_inertia(sys, inv, axes), joint_gain(sys, fr, inv))
+    return StepTerms(inv_inertia_body, joint_space.armature_loaded_inertia(sys, inv, axes),
+                     held_gain(sys, joint_gain(sys, fr, inv), inv), dof_window(sys, q))
 
 
 def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h: float) -> Bodies:
@@ -171,13 +201,14 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     inv = rigid.inverse_inertia(sys, bodies.x_quat, terms.inv_inertia_body)
     fr = joint_frames(sys, bodies, all_slots=False, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
-    force, torque = dof_force_wrench(sys, bodies, fr, axes, ctrl)
-    spring_force, spring_torque = joint_wrench(sys, bodies, fr, terms.joint_gain, h)
+    q = dof_angles(sys, dof_values(sys, fr.q), terms.window)
+    force, torque = dof_force_wrench(sys, bodies, fr, axes, q, ctrl)
+    spring_force, spring_torque = joint_wrench(sys, bodies, fr, terms.joint_gain, h, inv)
     if sys.fluid:
         fluid_force, fluid_torque = fluid_wrench(sys, bodies, inv.rot)
         force, torque = force + fluid_force, torque + fluid_torque
     after = integrator.velocity_update(sys, bodies, inv, force + spring_force, torque + spring_torque, h)
-    after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
+    after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h, q)
     if sys.contact_groups:
         after = contact_impulses(sys, after, terms.loaded, inv.rot)  # poses not yet moved: the substep's rot
     return integrator.integrate_positions(after, h)

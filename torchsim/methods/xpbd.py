@@ -16,22 +16,24 @@ so a held hinge creeps at about ``tau h / I_com`` (``tau`` the torque it holds, 
 its own COM): 2.6x MuJoCo's soft-friction creep for a pendulum at h = 0.5 ms (``tests/test_frictionloss.py``).
 """
 
+from typing import NamedTuple
+
 import torch
 
 from torchsim import hinge_anchors, integrator, joint_space, lanes, spatial, rigid
 from torchsim.actuators import dof_forces
 from torchsim.collision import contacts
 from torchsim.fluid import fluid_wrench
-from torchsim.kinematics import Bodies, dof_angles, dof_values, in_window, joint_frames
+from torchsim.kinematics import Bodies, dof_angles, dof_values, dof_window, in_window, joint_frames
 from torchsim.methods._method import Method
 from torchsim.system import System
 
 
 def _slot_limits(sys: System, colour: torch.Tensor, fr, limits: joint_space.LimitRows, goal: torch.Tensor,
-                 impulse: torch.Tensor):
+                 impulse: torch.Tensor, window: torch.Tensor):
     """The soft-limit rows of a colour's hinge slots ``(3, K, B)``: where a limit pushes, the coordinate's lead over
     its ``goal`` (``q + h target``, :func:`substep`), MuJoCo's ``R``, the armature and the row's ``impulse`` so far
-    (``(D, B)`` for all dofs); and each slot's dof ``(3 K,)``.
+    (``(D, B)`` for all dofs); and each slot's dof ``(3 K,)``. ``window``: the step's (``kinematics.dof_window``).
 
     The row's compliance (:func:`project_joints`) is MuJoCo's ``R`` times ``1 + J W`` (``J`` the armature, ``W``
     the row's diagonal in the Schur complement, its inverse inertia with the anchor held): the rotor rides with the
@@ -41,10 +43,8 @@ def _slot_limits(sys: System, colour: torch.Tensor, fr, limits: joint_space.Limi
     has_dof = lanes.param(slots >= 0, 1, 1)
     dof = slots.T.reshape(-1).clamp_min(0)
     q = fr.q[:, 3:].movedim(1, 0)
-    if sys.dof_has_windows:  # static: a range reaching past half a turn from ref (kinematics.dof_angles)
-        q = in_window(sys, q, lambda field: lanes.param(field[slots.clamp_min(0)], 1, 1), has_dof)
-    else:
-        q = q + torch.where(has_dof, lanes.param(sys.dof_ref[slots.clamp_min(0)], 1, 1), 0.0)
+    window = window.index_select(1, dof).view(2, *q.shape[:2], -1)
+    q = in_window(q, window, lanes.param(sys.dof_ref[slots.clamp_min(0)], 1, 1), has_dof)
     slot = [x.index_select(0, dof).view(q.shape[:2] + x.shape[1:]) for x in (*limits, goal, impulse)]
     active, sign, _, reg, goal, impulse = slot
     lead = q - goal
@@ -54,7 +54,8 @@ def _slot_limits(sys: System, colour: torch.Tensor, fr, limits: joint_space.Limi
 
 
 def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, limits: joint_space.LimitRows | None = None,
-                   goal: torch.Tensor | None = None, impulse: torch.Tensor | None = None):
+                   goal: torch.Tensor | None = None, impulse: torch.Tensor | None = None,
+                   window: torch.Tensor | None = None):
     """Solve every joint colour by colour: anchors coincide, constrained axes align, pushing limits move their
     dofs towards their goals (:func:`_slot_limits`).
 
@@ -64,7 +65,8 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, limit
     pushes, and absent for a free dof. Bodies are lanes (``(3|4, N + 1, B)``); per joint of a colour, the rows are
     vectors ``(3, K, B)`` and the blocks matrices ``(3, 3, K, B)``. With ``limits``, also returns their rows'
     accumulated ``impulse`` ``(D, B)`` (passed in: from the substep's earlier passes, XPBD's ``lambda``, so that
-    further passes converge to the compliant row rather than stiffen it).
+    further passes converge to the compliant row rather than stiffen it); the limits read the hinge angles in the
+    step's ``window`` (``kinematics.dof_window``).
     """
     for colour in sys.jnt_colors:
         child, parent = sys.jnt_child[colour], sys.jnt_parent[colour]
@@ -90,7 +92,7 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, limit
         g = fr.hinge_dual
         error = spatial.matvec(g, fr.ang_err)
         if limits is not None:
-            pushing, lead, reg, armature, held, dof = _slot_limits(sys, colour, fr, limits, goal, impulse)
+            pushing, lead, reg, armature, held, dof = _slot_limits(sys, colour, fr, limits, goal, impulse, window)
             error = torch.where(hard, error, lead)
             hard = hard | pushing
         mask = hard.to(error.dtype)  # the diagonal of the rotation rows' projector P_m
@@ -197,26 +199,39 @@ def stop_contacts(bodies: Bodies, inv: rigid.InverseInertia, con, active, scale_
     return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
 
 
-def step_terms(sys: System, bodies: Bodies, h: float) -> torch.Tensor:
-    """What the substeps of a step share: the body-frame inverse inertias ``(3, 3, N, 1 | B)`` (the world-frame
-    ones are rebuilt at every projection's poses)."""
-    return rigid.body_inverse_inertia(sys)
+class StepTerms(NamedTuple):
+    """What the substeps of a step share.
+
+    Attributes:
+        inv_inertia_body: (3, 3, N, 1 | B) body-frame inverse inertias (the world-frame ones are rebuilt at every
+            projection's poses).
+        window: (2, D, B) where the substeps read the dofs' coordinates (``kinematics.dof_window``).
+    """
+
+    inv_inertia_body: torch.Tensor
+    window: torch.Tensor
 
 
-def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: torch.Tensor, h: float) -> Bodies:
+def step_terms(sys: System, bodies: Bodies, q: torch.Tensor, h: float) -> StepTerms:
+    """:class:`StepTerms` of a step starting at coordinates ``q (nq, B)``."""
+    return StepTerms(rigid.body_inverse_inertia(sys), dof_window(sys, q))
+
+
+def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h: float) -> Bodies:
     """Forces -> velocities -> positions; project contacts, then joints (with limits and armature); velocities
-    from the displacement; inelastic contact velocity pass. All lanes: ext ``bodies``, ``ctrl (U, B)``,
-    ``inv_inertia_body (3, 3, N, 1|B)``."""
+    from the displacement; inelastic contact velocity pass. All lanes: ext ``bodies``, ``ctrl (U, B)``; ``terms``
+    from :func:`step_terms`."""
+    inv_inertia_body = terms.inv_inertia_body
     inv = rigid.inverse_inertia(sys, bodies.x_quat, inv_inertia_body)
     fr = joint_frames(sys, bodies, all_slots=False, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
-    q, qd = dof_angles(sys, dof_values(sys, fr.q)), dof_values(sys, fr.qd)
+    q, qd = dof_angles(sys, dof_values(sys, fr.q), terms.window), dof_values(sys, fr.qd)
     force, torque = rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, qd, ctrl))
     if sys.fluid:
         fluid_force, fluid_torque = fluid_wrench(sys, bodies, inv.rot)
         force, torque = force + fluid_force, torque + fluid_torque
     after = integrator.velocity_update(sys, bodies, inv, force, torque, h)
-    after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h, soft_limits=False)
+    after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
     q_pred = q + h * qd_pred
     moved = integrator.integrate_positions(after, h)
     inv = rigid.inverse_inertia(sys, moved.x_quat, inv_inertia_body)
@@ -228,7 +243,7 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, inv_inertia_body: t
         if limits is None:
             moved = project_joints(sys, moved, inv)
         else:
-            moved, impulse = project_joints(sys, moved, inv, limits, goal, impulse)
+            moved, impulse = project_joints(sys, moved, inv, limits, goal, impulse, terms.window)
     if sys.jnt_has_slides:
         moved = correct_slides(sys, moved, inv, q_pred, limits, goal)
     xd_vel = (moved.x_pos - bodies.x_pos) / h
