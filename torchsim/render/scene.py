@@ -1,0 +1,188 @@
+"""The static half of a rendered scene, built once per model and shared by every env of a batch.
+
+A :class:`Scene` holds what the camera can see that never changes between envs or steps: each visible geom's
+shape type, size, colour, pose relative to the torchsim body it rides on, and the model's cameras and clip
+distances. Per env only the body poses change (``State.x_pos``, ``State.x_quat``); :func:`torchsim.render.render`
+combines the two.
+
+Geoms are taken from the ``mujoco.MjModel`` rather than from the ``System``, so visual-only geoms
+(``contype = conaffinity = 0``) are included; their MuJoCo body is mapped to the torchsim body it is fused into
+through ``System.mjbody_*``. Visibility follows what ``mujoco.Renderer`` shows with its default options: geom groups
+0-2, and geoms whose colour (``rgba``, or the material's where the geom's ``rgba`` is MuJoCo's default) is not fully
+transparent.
+"""
+
+import dataclasses
+
+import mujoco
+import numpy as np
+import torch
+
+from torchsim.render.camera import Camera, cameras_from_model
+from torchsim.render.frames import quat_to_mat_np
+
+#: Geom types the renderer intersects in closed form, by MuJoCo ``mjtGeom`` value.
+SHAPES = {
+    int(mujoco.mjtGeom.mjGEOM_PLANE): "plane", int(mujoco.mjtGeom.mjGEOM_SPHERE): "sphere",
+    int(mujoco.mjtGeom.mjGEOM_CAPSULE): "capsule", int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid",
+    int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinder", int(mujoco.mjtGeom.mjGEOM_BOX): "box",
+}
+#: MuJoCo's default geom colour: a geom with a material and this rgba shows the material's colour.
+DEFAULT_RGBA = np.array([0.5, 0.5, 0.5, 1.0])
+
+
+class UnsupportedGeomError(ValueError):
+    """A visible geom has a type the renderer cannot intersect (mesh, hfield, sdf, ...)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Scene:
+    """Static description of what cameras see. ``G`` rendered geoms, ``N`` torchsim bodies (ext index ``N``: the
+    world), ``M`` MuJoCo bodies.
+
+    Attributes:
+        geom_id: (G,) MuJoCo geom id of each rendered geom (what segmentation images hold).
+        geom_type: (G,) shape names (``SHAPES`` values).
+        geom_body: (G,) ext index of the torchsim body carrying the geom.
+        geom_pos, geom_rot: (G, 3), (G, 3, 3) the geom's frame in its body's frame (the body COM frame of
+            ``State.x_pos``/``x_quat``; the world frame for static geoms).
+        geom_size: (G, 3) MuJoCo sizes.  geom_rgba: (G, 4) colour as MuJoCo's renderer uses it.
+        geom_radius: (G,) radius of a sphere about the geom's centre that holds it (inf: infinite planes).
+        groups: ``(shape name, (g,) positions into the G geoms)`` per shape type present.
+        cameras: the model's ``<camera>`` elements (:class:`Camera`; may be empty).
+        znear, zfar: clip distances [m], MuJoCo's ``vis.map.znear/zfar`` times ``stat.extent``; nothing nearer or
+            farther is drawn, and empty pixels have depth ``zfar`` (as MuJoCo's depth buffer).
+        num_bodies: ``N``.  mjbody_body: (M,) ext index of each MuJoCo body's torchsim body; mjbody_pos,
+            mjbody_rot: (M, 3), (M, 3, 3) the MuJoCo body's frame in it.  mjbody_names: (M,) names.
+        skipped: names of geoms left out because their type is unsupported (``skip_unsupported=True``).
+        unsupported_cameras: ``(name, reason)`` of model cameras left out of ``cameras`` (modes other than fixed
+            and track, orthographic or intrinsics cameras); selecting one by name raises with the reason.
+    """
+
+    geom_id: torch.Tensor
+    geom_type: tuple
+    geom_body: torch.Tensor
+    geom_pos: torch.Tensor
+    geom_rot: torch.Tensor
+    geom_size: torch.Tensor
+    geom_rgba: torch.Tensor
+    geom_radius: torch.Tensor
+    groups: tuple
+    cameras: Camera
+    znear: float
+    zfar: float
+    num_bodies: int
+    mjbody_body: torch.Tensor
+    mjbody_pos: torch.Tensor
+    mjbody_rot: torch.Tensor
+    mjbody_names: tuple
+    skipped: tuple = ()
+    unsupported_cameras: tuple = ()
+
+    @staticmethod
+    def build(model, system, geom_groups=(0, 1, 2), skip_unsupported: bool = False) -> "Scene":
+        """The scene of ``model`` (a ``mujoco.MjModel``, an MJCF path or XML text) as simulated by ``system``
+        (the ``torchsim.System`` loaded from the same model; only its body mapping is used).
+
+        Args:
+            geom_groups: geom groups drawn (MuJoCo's renderer default: 0, 1, 2).
+            skip_unsupported: leave out visible geoms of unsupported types (mesh, hfield, sdf): they are then
+                invisible in every image. Default: raise :class:`UnsupportedGeomError` naming the geom and type.
+        """
+        m = _model(model)
+        nbody = int(system.mjbody_body.shape[0])
+        if nbody != m.nbody:
+            raise ValueError(f"the System has {nbody} MuJoCo bodies, the model {m.nbody}: not the same model")
+        mj_body = system.mjbody_body.cpu().numpy()
+        mj_pos = system.mjbody_pos.cpu().double().numpy()
+        mj_rot = np.stack([quat_to_mat_np(q) for q in system.mjbody_quat.cpu().double().numpy()])
+        rows, skipped = [], []
+        for g in range(m.ngeom):
+            rgba = m.geom_rgba[g].astype(np.float64)
+            if m.geom_matid[g] >= 0 and np.allclose(rgba, DEFAULT_RGBA):
+                rgba = m.mat_rgba[m.geom_matid[g]].astype(np.float64)
+            if m.geom_group[g] not in geom_groups or rgba[3] == 0:
+                continue
+            kind = SHAPES.get(int(m.geom_type[g]))
+            if kind is None:
+                label = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or f"#{g}"
+                if skip_unsupported:
+                    skipped.append(label)
+                    continue
+                raise UnsupportedGeomError(
+                    f"geom {label!r} has type {mujoco.mjtGeom(m.geom_type[g]).name}, which the renderer cannot "
+                    "draw (supported: plane, sphere, capsule, ellipsoid, cylinder, box); pass "
+                    "skip_unsupported=True to leave such geoms out (they are then invisible)")
+            b = m.geom_bodyid[g]
+            pos = mj_pos[b] + mj_rot[b] @ m.geom_pos[g]
+            rot = mj_rot[b] @ quat_to_mat_np(m.geom_quat[g])
+            rows.append((g, kind, mj_body[b], pos, rot, m.geom_size[g].astype(np.float64), rgba))
+        cameras, refused = cameras_from_model(m, mj_body, mj_pos, mj_rot)
+        kinds = tuple(r[1] for r in rows)
+        groups = tuple((k, torch.as_tensor([i for i, t in enumerate(kinds) if t == k], dtype=torch.long))
+                       for k in SHAPES.values() if k in kinds)
+        as_f = lambda i, shape: torch.as_tensor(np.array([r[i] for r in rows], dtype=np.float64).reshape(shape))
+        return Scene(
+            geom_id=torch.as_tensor([r[0] for r in rows], dtype=torch.long), geom_type=kinds,
+            geom_body=torch.as_tensor([r[2] for r in rows], dtype=torch.long),
+            geom_pos=as_f(3, (-1, 3)), geom_rot=as_f(4, (-1, 3, 3)), geom_size=as_f(5, (-1, 3)),
+            geom_rgba=as_f(6, (-1, 4)),
+            geom_radius=torch.as_tensor([bounding_radius(r[1], r[5]) for r in rows], dtype=torch.float64),
+            groups=groups, cameras=cameras,
+            znear=float(m.vis.map.znear * m.stat.extent), zfar=float(m.vis.map.zfar * m.stat.extent),
+            num_bodies=int(system.num_bodies), mjbody_body=torch.as_tensor(mj_body, dtype=torch.long),
+            mjbody_pos=torch.as_tensor(mj_pos), mjbody_rot=torch.as_tensor(mj_rot),
+            mjbody_names=tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or "" for b in range(m.nbody)),
+            skipped=tuple(skipped), unsupported_cameras=refused)
+
+    def to(self, device=None, dtype=None) -> "Scene":
+        """A copy on ``device`` with floating tensors in ``dtype``."""
+        def move(x):
+            if isinstance(x, torch.Tensor):
+                return x.to(device=device, dtype=dtype if x.is_floating_point() else None)
+            if isinstance(x, Camera):
+                return x.to(device, dtype)
+            if isinstance(x, tuple) and x and isinstance(x[0], tuple):
+                return tuple((k, move(v)) for k, v in x)
+            return x
+        return dataclasses.replace(self, **{f.name: move(getattr(self, f.name)) for f in dataclasses.fields(self)})
+
+    @property
+    def num_geoms(self) -> int:
+        return int(self.geom_id.shape[0])
+
+    def camera(self, which) -> Camera:
+        """Cameras selected by ``which``: a :class:`Camera` (returned as is), a name or index of a model camera,
+        or a list of these (concatenated in order)."""
+        if isinstance(which, Camera):
+            return which
+        if isinstance(which, (list, tuple)):
+            return Camera.cat([self.camera(w) for w in which])
+        if isinstance(which, str):
+            reasons = dict(self.unsupported_cameras)
+            if which in reasons:
+                raise ValueError(f"camera {which!r} cannot be rendered: {reasons[which]}")
+            if which not in self.cameras.names:
+                raise KeyError(f"no camera named {which!r}; the model's cameras: {list(self.cameras.names)}")
+            which = self.cameras.names.index(which)
+        if not 0 <= int(which) < self.cameras.num:
+            raise IndexError(f"camera index {which} out of range: the model has {self.cameras.num} cameras")
+        return self.cameras.select([int(which)])
+
+
+def bounding_radius(kind: str, size) -> float:
+    """Radius of the smallest sphere about a geom's centre that holds it (MuJoCo sizes; inf for infinite planes)."""
+    if kind == "plane":
+        return float(np.hypot(size[0], size[1])) if size[0] > 0 and size[1] > 0 else float("inf")
+    radius = {"sphere": size[0], "capsule": size[0] + size[1], "cylinder": np.hypot(size[0], size[1]),
+              "ellipsoid": max(size), "box": np.linalg.norm(size)}[kind]
+    return float(radius)
+
+
+def _model(model) -> mujoco.MjModel:
+    if isinstance(model, mujoco.MjModel):
+        return model
+    text = str(model)
+    if text.lstrip().startswith("<"):
+        return mujoco.MjModel.from_xml_string(text)
+    return mujoco.MjModel.from_xml_path(text)
