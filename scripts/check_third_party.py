@@ -81,13 +81,13 @@ def model_paths(cache: Path, versions: dict) -> list[tuple[str, Path]]:
     return out
 
 
-def load(path: Path):
+def load(path: Path, **options):
     """(status, sys or None, detail): LOAD (detail: the loader's warnings, what it ignored), REFUSE
-    (UnsupportedMJCFError) or CRASH (anything else)."""
+    (UnsupportedMJCFError) or CRASH (anything else). ``options``: ``torchsim.load_mjcf``'s."""
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            sys = torchsim.load_mjcf(str(path), dtype=F64)
+            sys = torchsim.load_mjcf(str(path), dtype=F64, **options)
         return "LOAD", sys, "; ".join(dict.fromkeys(f"warns: {w.message}" for w in caught))
     except torchsim.UnsupportedMJCFError as e:
         return "REFUSE", None, str(e)
@@ -139,7 +139,7 @@ def check(source: str, path: Path, budget: float) -> dict:
     """One table row for the model at ``path``."""
     t0 = time.perf_counter()
     row = dict(source=source, model=path.stem, status="", nq="-", contact="-", steps="-", ts=np.nan, mj=np.nan,
-               verdict="", detail="")
+               soft=np.nan, verdict="", soft_verdict="", detail="")
     try:
         m = mujoco.MjModel.from_xml_path(str(path))
     except Exception as e:
@@ -166,6 +166,10 @@ def check(source: str, path: Path, budget: float) -> dict:
                         ts=q_error(m, ours, fine[:n]), mj=q_error(m, ref[:n], fine[:n]))
             tol = max((5.0 if row["contact"] == "yes" else 2.0) * row["mj"], 1e-3)
             row["verdict"] = "MISS" if diverged or not row["ts"] <= tol else "PASS"
+            if row["contact"] == "yes":  # the same with MuJoCo's soft contacts (load_mjcf(contact_model="soft"))
+                soft, soft_diverged = torchsim_rollout(load(path, contact_model="soft")[1], m, qd0, steps, budget)
+                row["soft"] = q_error(m, soft, fine[:len(soft)])
+                row["soft_verdict"] = "MISS" if soft_diverged or not row["soft"] <= tol else "PASS"
             row["detail"] = "; ".join(filter(None, ["torchsim diverged" if diverged else "", row["detail"]]))
     if (source, path.stem) in TEMPLATES:
         row["detail"] = "; ".join(filter(None, ["template: the task builds its model from it in code", row["detail"]]))
@@ -178,23 +182,29 @@ def fmt(x: float) -> str:
 
 def table(rows: list[dict]) -> str:
     lines = ["| source | model | nq | status | contact | steps | ts vs mj dt/4 | mj dt vs dt/4 | ratio | verdict "
-             "| time [s] | detail |", "|" + "---|" * 12]
+             "| soft: ts vs mj dt/4 | soft: ratio | soft: verdict | time [s] | detail |", "|" + "---|" * 15]
+
+    def ratio(x, r):
+        return "-" if np.isnan(x) or not r["mj"] > 0 else f"{x / r['mj']:.3g}"
+
     for r in rows:
-        ratio = r["ts"] / r["mj"] if r["mj"] > 0 else np.nan
         detail = r["detail"].replace("|", "/").split("; see torchsim")[0]
         lines.append(f"| {r['source']} | {r['model']} | {r['nq']} | {r['status']} | {r['contact']} | {r['steps']} "
-                     f"| {fmt(r['ts'])} | {fmt(r['mj'])} | {'-' if np.isnan(ratio) else f'{ratio:.3g}'} "
-                     f"| {r['verdict'] or '-'} | {r['time']:.1f} | {f'`{detail}`' if detail else ''} |")
+                     f"| {fmt(r['ts'])} | {fmt(r['mj'])} | {ratio(r['ts'], r)} | {r['verdict'] or '-'} "
+                     f"| {fmt(r['soft'])} | {ratio(r['soft'], r)} | {r['soft_verdict'] or '-'} "
+                     f"| {r['time']:.1f} | {f'`{detail}`' if detail else ''} |")
     return "\n".join(lines)
 
 
 def summary(rows: list[dict]) -> str:
     status = collections.Counter(r["status"] for r in rows)
     verdict = collections.Counter(r["verdict"] for r in rows if r["verdict"])
+    soft = collections.Counter(r["soft_verdict"] for r in rows if r["soft_verdict"])
     causes = collections.Counter(re.sub(r"'[^']*'|\(\d+ found\)|#\d+", "…", r["detail"]).split("; ")[0]
                                  for r in rows if r["status"] == "REFUSE")
     out = [f"{len(rows)} models: " + ", ".join(f"{k} {v}" for k, v in sorted(status.items())) + "; rolled out: "
-           + (", ".join(f"{k} {v}" for k, v in sorted(verdict.items())) or "none") + "."]
+           + (", ".join(f"{k} {v}" for k, v in sorted(verdict.items())) or "none") + "; with contacts, under "
+           "`contact_model=\"soft\"`: " + (", ".join(f"{k} {v}" for k, v in sorted(soft.items())) or "none") + "."]
     out += ["", "Refusal causes:"] + [f"- {n} x `{c}`" for c, n in causes.most_common()]
     crashes = [f"- {r['source']}/{r['model']}: `{r['detail']}`" for r in rows if r["status"] == "CRASH"]
     return "\n".join(out + (["", "Crashes (engine bugs):"] + crashes if crashes else []))
@@ -221,6 +231,7 @@ def main():
         rows.append(check(source, path, args.budget))
         r = rows[-1]
         print(f"{source:10s} {path.stem:26s} {r['status']:8s} {r['verdict']:4s} ts {fmt(r['ts'])} mj {fmt(r['mj'])} "
+              f"soft {fmt(r['soft'])} {r['soft_verdict']:4s} "
               f"{r['time']:6.1f} s  {r['detail'][:90]}", flush=True)
     total = time.perf_counter() - t0
     cmd = " ".join(["OMP_NUM_THREADS=1 python scripts/check_third_party.py", *_sys.argv[1:]])
@@ -231,7 +242,9 @@ def main():
         "verdict: the script's docstring. "
         "`ts`: torchsim vs MuJoCo at dt/4; `mj`: MuJoCo dt vs dt/4; RMS of qpos over 0.5 s from qpos0 with "
         "N(0, 0.1) start velocities, zero controls; PASS: ts <= max(2 mj, 1e-3) without contact, max(5 mj, 1e-3) "
-        "with contact. dm_control's lqr.xml and swimmer.xml are templates (see the docstring).",
+        "with contact. `soft`: the same torchsim rollout with `load_mjcf(contact_model=\"soft\")` (MuJoCo's soft "
+        "contact normal, `torchsim/soft_contacts.py`), for the models with contact. dm_control's lqr.xml and "
+        "swimmer.xml are templates (see the docstring).",
         summary(rows), table(rows)])
     print("\n" + text)
     if args.write_docs:

@@ -80,3 +80,32 @@ def test_plane_contacts_skip_the_world_exactly():
         results.append((v_rel, w_n, scale_a, *moved))
     for skipped, general in zip(*results):
         assert torch.equal(skipped, general)
+
+
+SLIDING_BOX = """<mujoco><option timestep="0.002"/><worldbody>
+  <geom type="plane" size="2 2 .1" condim="{floor}"/>
+  <body pos="0 0 0.1"><freejoint/><geom type="box" size=".1 .1 .1" mass="1" condim="{box}" friction="0.5"/></body>
+</worldbody></mujoco>"""
+
+
+@pytest.mark.parametrize("condim", [1, 3])
+def test_condim_one_is_frictionless_like_mujoco(condim):
+    """A box resting on the floor, sent sliding at 1 m/s: with condim 1 (MuJoCo's frictionless contact) it keeps its
+    speed, with condim 3 friction (mu 1, the larger of the pair's) slows it to ~0.02 m/s (1 - mu g t). The pair's
+    condim is the larger of the two geoms'. Speed after 0.1 s against MuJoCo's, within 0.05 m/s (the two cases
+    differ by 0.98 m/s; torchsim's hard friction and MuJoCo's soft one by 0.016 m/s)."""
+    xml = SLIDING_BOX.format(floor=1, box=condim)
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    d.qvel[0] = 1.0
+    for _ in range(50):
+        mujoco.mj_step(m, d)
+    sys = torchsim.load_mjcf(xml, dtype=torch.float64)
+    qd = torch.zeros(1, 6, dtype=torch.float64)
+    qd[0, 0] = 1.0
+    state = torchsim.init(sys, sys.q0[None], qd)
+    for _ in range(50):
+        state = torchsim.step(sys, state, torch.zeros(1, 0, dtype=torch.float64))
+    print(f"condim {condim}: speed after 0.1 s {state.qd[0, 0].item():.4f} m/s (MuJoCo {d.qvel[0]:.4f})")
+    assert abs(state.qd[0, 0].item() - d.qvel[0]) < 0.05
+    assert (d.qvel[0] > 0.99) == (condim == 1)

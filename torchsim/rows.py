@@ -305,6 +305,9 @@ class _RowInterpreter(Interpreter):
     def _op_clone_default(self, shape, x, **kwargs):
         return x
 
+    def _op_alias_default(self, shape, x):
+        return x
+
     def _op_zeros_like_default(self, shape, x, **kwargs):
         return Rows(np.full(shape[:-1], 0.0, dtype=object))
 
@@ -325,7 +328,7 @@ class _RowInterpreter(Interpreter):
         axes = sorted(self._axis(c, d) for d in dims)
         kept = [a for a in range(c.ndim) if a not in axes]
         moved = np.transpose(c, kept + axes)
-        moved = moved.reshape(moved.shape[:len(kept)] + (-1,))
+        moved = moved.reshape(moved.shape[:len(kept)] + (int(np.prod([c.shape[a] for a in axes])),))  # kept may be 0
         out = np.empty(moved.shape[:-1], dtype=object)
         for idx in np.ndindex(out.shape):
             terms = list(moved[idx])
@@ -484,6 +487,8 @@ def _stack_rows(cells: np.ndarray, like: torch.Tensor) -> torch.Tensor:
 
     if cells.ndim == 0:
         return row(cells[()]).clone()
+    if cells.size == 0:  # an empty output (a model without hinge dofs: (0, B) rates)
+        return torch.zeros_like(like)
     return torch.stack([row(r) if cells.ndim == 1 else _stack_rows(r, like[0]) for r in cells])
 
 

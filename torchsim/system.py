@@ -109,6 +109,15 @@ class System:
     Geometry and contacts:
         geom_body: (G,) ext body index.  geom_pos, geom_quat: (G, 3), (G, 4) from the body COM in the body frame
         (world frame for static geoms).  geom_size: (G, 3) MuJoCo sizes.  contact_groups: one per shape pair.
+        contact_soft: whether contacts are MuJoCo's soft constraint (``load_mjcf(contact_model="soft")``, the
+        spring method; static).  Per contact point ``C`` (the order of ``collision.contacts``):
+        contact_gains: (C, 2) ``K`` [1/s^2], ``B`` [1/s] from the pair's ``solref``.  contact_solimp: (C, 5).
+        contact_invweight: (C,) MuJoCo's approximate inverse mass of the contact normal at ``qpos0`` (its two
+        bodies' translational ``body_invweight0``) [1/kg].  contact_solimp_square: every contact's ``solimp``
+        power is 2 (static).  contact_pyramidal: MuJoCo's friction cone is pyramidal (its default; static).
+        contact_inc_point, contact_inc_body, contact_inc_sign: (P,) the (point, moving
+        body) incidences, grouped by body, sign +1 where the normal pushes the body; contact_inc_pairs: (Q, 2) the
+        ordered pairs of incidences on a common body (the soft contacts' coupling, ``torchsim.soft_contacts``).
     Fluid (MuJoCo's inertia-box model, ``torchsim.fluid``; ``E`` elements, one per moving MuJoCo body with mass):
         fluid: whether the model has a fluid (``density`` or ``viscosity`` > 0; static structure: without it the
         step does no fluid work).  fluid_body: (E,) the ext body carrying each element.
@@ -234,6 +243,16 @@ class System:
     geom_quat: torch.Tensor
     geom_size: torch.Tensor
     contact_groups: tuple
+    contact_soft: bool
+    contact_gains: torch.Tensor
+    contact_solimp: torch.Tensor
+    contact_invweight: torch.Tensor
+    contact_solimp_square: bool
+    contact_pyramidal: bool
+    contact_inc_point: torch.Tensor
+    contact_inc_body: torch.Tensor
+    contact_inc_sign: torch.Tensor
+    contact_inc_pairs: torch.Tensor
     # fluid
     fluid: bool
     fluid_body: torch.Tensor

@@ -60,6 +60,7 @@ def load_mjcf(
     joint_stiffness: float = 0.2,
     joint_damping: float = 0.5,
     contact_timeconst: float = 0.02,
+    contact_model: str = "impulse",
     xpbd_iterations: int = 1,
     max_speed: float = 1e3,
     max_distance: float = 1e4,
@@ -79,12 +80,21 @@ def load_mjcf(
             critically damped contact pushing out a body that starts that deep (Baumgarte). A per-substep
             fraction instead would launch bodies that start interpenetrating at ``depth / h``. XPBD removes
             penetration in full and zeroes the contacts' normal speed.
+        contact_model: spring method only. ``"impulse"`` (default): the Brax-style impulse above, which stops a
+            landing body within a substep. ``"soft"``: MuJoCo's soft contact on the normal, with each pair's
+            ``solref``, ``solimp`` and ``margin`` (``contact_timeconst`` unused): a body sinks in and is pushed
+            back along MuJoCo's spring-damper, and rests as deep as in MuJoCo (``torchsim.soft_contacts``).
+            Friction stays a Coulomb-capped impulse in both.
         xpbd_iterations: XPBD only: projection passes (contacts, then joint colours) per substep.
         max_speed, max_distance: an env whose body speed [m/s] or distance from the origin [m] exceeds these is
             flagged as diverged.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {tuple(METHODS)}")
+    if contact_model not in ("impulse", "soft"):
+        raise ValueError(f"unknown contact_model {contact_model!r}; expected 'impulse' or 'soft'")
+    if contact_model == "soft" and method != "spring":
+        raise ValueError(f"contact_model='soft' is implemented for the spring method only, not {method!r}")
     m = _compile(source)
     check_supported(m)
     substeps = substeps or max(1, int(np.ceil(m.opt.timestep / METHODS[method].default_substep_timestep - 1e-9)))
@@ -97,7 +107,7 @@ def load_mjcf(
         nq=m.nq, nv=m.nv, nu=m.nu, timestep=float(m.opt.timestep), substeps=int(substeps), method=method,
         gravity=torch.as_tensor(gravity), q0=torch.as_tensor(m.qpos0.copy()),
         joint_stiffness=joint_stiffness, joint_damping=joint_damping, contact_timeconst=contact_timeconst, xpbd_iterations=xpbd_iterations,
-        max_speed=max_speed, max_distance=max_distance, **fields,
+        contact_soft=contact_model == "soft", max_speed=max_speed, max_distance=max_distance, **fields,
     )
     return sys.to(device=device, dtype=dtype)
 

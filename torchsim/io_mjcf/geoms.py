@@ -9,6 +9,7 @@ import torch
 from torchsim.collision import SHAPE_RANK
 from torchsim.io_mjcf.bodies import FusedBodies, compose
 from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
+from torchsim.io_mjcf.tendons import solref_gains
 from torchsim.system import POINTS_PER_PAIR, ContactGroup
 
 SHAPE_NAME = {
@@ -33,7 +34,7 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies) -> dict:
     if not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONTACT):
         pairs = candidate_pairs(m)
     groups = {}
-    for (g1, g2), (friction, margin) in pairs.items():
+    for (g1, g2), (friction, margin, *_) in pairs.items():
         names = [SHAPE_NAME.get(int(m.geom_type[g])) for g in (g1, g2)]
         if None in names:
             bad = g1 if names[0] is None else g2
@@ -49,7 +50,7 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies) -> dict:
             raise UnsupportedMJCFError(
                 f"geoms {geom_a!r} ({na}) and {geom_b!r} ({nb}) can collide, and {na}-{nb} contacts are not "
                 "implemented; exclude the pair or set contype/conaffinity so that they cannot touch")
-        groups.setdefault(f"{na}_{nb}", []).append((ga, gb, friction, margin))
+        groups.setdefault(f"{na}_{nb}", []).append((ga, gb, friction, margin, *pairs[(g1, g2)][2:]))
     for g in range(m.ngeom):
         if int(m.geom_type[g]) not in SHAPE_NAME and (m.geom_contype[g] or m.geom_conaffinity[g]):
             warnings.warn(f"geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r}: non-primitive geom found no contact "
@@ -58,15 +59,40 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies) -> dict:
         ContactGroup(kind, *(torch.as_tensor([p[i] for p in rows], dtype=torch.long if i < 2 else torch.float64)
                              for i in range(4)))
         for kind, rows in sorted(groups.items()))
+    # the soft contacts' parameters per contact point, in collision.contacts' order: groups, then pairs, then points
+    points = [p for kind, rows in sorted(groups.items()) for p in rows for _ in range(POINTS_PER_PAIR[kind])]
+    solref, solimp, invweight = (np.array([p[4 + i] for p in points]).reshape(-1, *shape)
+                                 for i, shape in enumerate(((2,), (5,), ())))
+    bodies = [[fused.body_of(m, m.geom_bodyid[g]) for g in p[:2]] for p in points]
     return dict(
         geom_body=torch.as_tensor([fused.body_of(m, m.geom_bodyid[g]) for g in range(m.ngeom)], dtype=torch.long),
         geom_pos=torch.as_tensor(np.array(gpos).reshape(-1, 3)), geom_quat=torch.as_tensor(np.array(gquat).reshape(-1, 4)),
         geom_size=torch.as_tensor(m.geom_size.copy()), contact_groups=contact_groups,
+        contact_gains=torch.as_tensor(solref_gains(m, solref, solimp)), contact_solimp=torch.as_tensor(solimp),
+        contact_invweight=torch.as_tensor(invweight), contact_solimp_square=bool((solimp[:, 4] == 2).all()),
+        contact_pyramidal=m.opt.cone == int(mujoco.mjtCone.mjCONE_PYRAMIDAL),
+        **contact_incidence(bodies, fused.index[0]),
     )
 
 
+def contact_incidence(bodies: list, world: int) -> dict:
+    """Load-time tables of which contact points act on which moving body, for the soft contacts' coupled solve
+    (``torchsim.soft_contacts``): one row per (point, body), point ``(P,)``, ext body ``(P,)`` and sign ``(P,)``
+    (+1 for the pair's first body, which the normal pushes, -1 for the second), grouped by body; and ``(Q, 2)``
+    the ordered pairs of rows on a common body. ``bodies``: each point's two ext bodies; ``world``: the world's."""
+    rows = sorted(((body, point, sign) for point, pair in enumerate(bodies)
+                   for body, sign in zip(pair, (1.0, -1.0)) if body != world))
+    pairs = [(i, k) for i, row in enumerate(rows) for k, other in enumerate(rows) if row[0] == other[0]]
+    body, point, sign = (list(col) for col in zip(*rows)) if rows else ([], [], [])
+    return dict(contact_inc_point=torch.tensor(point, dtype=torch.long),
+                contact_inc_body=torch.tensor(body, dtype=torch.long),
+                contact_inc_sign=torch.tensor(sign, dtype=torch.float64),
+                contact_inc_pairs=torch.tensor(pairs, dtype=torch.long).reshape(-1, 2))
+
+
 def candidate_pairs(m: mujoco.MjModel) -> dict:
-    """Geom pairs that MuJoCo's broadphase filters would let collide: {(g1, g2): (friction, margin)}."""
+    """Geom pairs that MuJoCo's broadphase filters would let collide: {(g1, g2): (friction, margin, solref (2,),
+    solimp (5,), invweight)}, with MuJoCo's rules for combining the two geoms' values (:func:`_mixed`)."""
     weld, parent = m.body_weldid, m.body_parentid
     filter_parent = not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_FILTERPARENT)
     excluded = {int(s) for s in m.exclude_signature}
@@ -83,8 +109,40 @@ def candidate_pairs(m: mujoco.MjModel) -> dict:
                 continue
             if ((min(b1, b2) << 16) + max(b1, b2)) in excluded:
                 continue
-            pairs[(g1, g2)] = (max(m.geom_friction[g1, 0], m.geom_friction[g2, 0]), max(m.geom_margin[g1], m.geom_margin[g2]))
+            condim = max(m.geom_condim[g1], m.geom_condim[g2])
+            friction = max(m.geom_friction[g1, 0], m.geom_friction[g2, 0])
+            margin = max(m.geom_margin[g1], m.geom_margin[g2])
+            pairs[(g1, g2)] = (_sliding_friction(m, g1, g2, condim, friction), margin, *_mixed(m, g1, g2),
+                               _invweight(m, g1, g2))
     for p in range(m.npair):
         g1, g2 = sorted((m.pair_geom1[p], m.pair_geom2[p]))
-        pairs[(g1, g2)] = (m.pair_friction[p, 0], m.pair_margin[p])
+        pairs[(g1, g2)] = (_sliding_friction(m, g1, g2, m.pair_dim[p], m.pair_friction[p, 0]), m.pair_margin[p],
+                           m.pair_solref[p].copy(), m.pair_solimp[p].copy(), _invweight(m, g1, g2))
     return pairs
+
+
+def _mixed(m: mujoco.MjModel, g1: int, g2: int):
+    """A geom pair's ``solref`` and ``solimp`` as MuJoCo combines them: weighted by ``solmix`` (an even split where
+    both are ~0), except that a direct ``solref`` (non-positive) on either side takes the smaller of each."""
+    mix1, mix2 = m.geom_solmix[g1], m.geom_solmix[g2]
+    tiny = mujoco.mjMINVAL
+    mix = 0.5 if mix1 < tiny and mix2 < tiny else 0.0 if mix1 < tiny else 1.0 if mix2 < tiny else mix1 / (mix1 + mix2)
+    ref1, ref2 = m.geom_solref[g1], m.geom_solref[g2]
+    solref = mix * ref1 + (1 - mix) * ref2 if ref1[0] > 0 and ref2[0] > 0 else np.minimum(ref1, ref2)
+    return solref, mix * m.geom_solimp[g1] + (1 - mix) * m.geom_solimp[g2]
+
+
+def _invweight(m: mujoco.MjModel, g1: int, g2: int) -> float:
+    """MuJoCo's approximate inverse mass of a contact between two geoms at ``qpos0``: their bodies' translational
+    ``body_invweight0`` (the world's is 0), the ``A0`` its soft contact's regulariser scales with."""
+    return float(m.body_invweight0[m.geom_bodyid[g1], 0] + m.body_invweight0[m.geom_bodyid[g2], 0])
+
+
+def _sliding_friction(m: mujoco.MjModel, g1: int, g2: int, condim: int, friction: float) -> float:
+    """A pair's sliding friction by MuJoCo's ``condim``: 1 is frictionless, 3 sliding friction; 4 and 6 add
+    torsional and rolling friction, which torchsim does not model (a warning names the pair)."""
+    if condim > 3:
+        warnings.warn(f"geoms {name(m, mujoco.mjtObj.mjOBJ_GEOM, g1)!r} and {name(m, mujoco.mjtObj.mjOBJ_GEOM, g2)!r}"
+                      f" have condim {condim}: torchsim models their sliding friction only (no torsional or rolling"
+                      " friction)", stacklevel=5)
+    return 0.0 if condim == 1 else friction

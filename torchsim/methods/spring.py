@@ -18,7 +18,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import hinge_anchors, integrator, joint_space, spatial, rigid
+from torchsim import hinge_anchors, integrator, joint_space, spatial, rigid, soft_contacts
 from torchsim.actuators import dof_forces
 from torchsim.collision import contacts
 from torchsim.fluid import fluid_wrench
@@ -127,10 +127,12 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tenso
     return total[:3], total[3:]
 
 
-def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia,
-                     rot: torch.Tensor | None = None) -> Bodies:
-    """Velocity impulses stopping approach and separating at ``depth / (e contact_timeconst)``, Coulomb-capped
-    friction; ``rot``: the bodies' rotation matrices, if at hand (``collision.contacts``).
+def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, rot: torch.Tensor | None = None,
+                     start: Bodies | None = None, h: float | None = None) -> Bodies:
+    """Velocity impulses stopping approach and separating at ``depth / (e contact_timeconst)``, or with
+    ``sys.contact_soft`` MuJoCo's soft normal (``torchsim.soft_contacts``, from the bodies at the substep's
+    ``start`` over ``h``); Coulomb-capped friction. ``rot``: the bodies' rotation matrices, if at hand
+    (``collision.contacts``).
 
     The separating speed is the peak speed of MuJoCo's critically damped soft contact (``solref`` time constant
     ``tau``) pushing out a body that starts ``depth`` deep: ``depth t / tau^2 exp(-t / tau)``, largest at
@@ -143,14 +145,21 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia,
     r_a, r_b, v_rel = rigid.contact_arms(bodies, a, b, con.pos)
     v_n = spatial.dot(v_rel, con.normal)
     active = (con.depth > 0).to(con.depth.dtype)
-    w_n = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, con.normal)
-    j_n = active * torch.relu(-v_n + con.depth / (torch.e * sys.contact_timeconst)) / w_n
+    scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[-2])
+    if sys.contact_soft:  # each point's own share: friction's cap is its own, its stopping impulse averaged
+        v_n_start = spatial.dot(rigid.contact_arms(start, a, b, con.pos)[2], con.normal)
+        j_n = soft_contacts.normal_impulses(sys, bodies, inv, con, v_n, v_n_start, h)
+        stop_share = scale_a if b is None else torch.minimum(scale_a, scale_b)
+        scale_a, scale_b = 1.0, 1.0
+    else:
+        w_n = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, con.normal)
+        j_n = active * torch.relu(-v_n + con.depth / (torch.e * sys.contact_timeconst)) / w_n
+        stop_share = 1.0
     v_t = v_rel - v_n * con.normal
     speed_t = spatial.safe_norm(v_t)
     tangent = v_t / speed_t
     w_t = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, tangent)
-    j_t = torch.minimum(speed_t / w_t, con.friction * j_n)
-    scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[-2])
+    j_t = torch.minimum(stop_share * speed_t / w_t, con.friction * j_n)
     p_lin = j_n * con.normal - j_t * tangent
     return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
 
@@ -210,7 +219,8 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     after = integrator.velocity_update(sys, bodies, inv, force + spring_force, torque + spring_torque, h)
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h, q)
     if sys.contact_groups:
-        after = contact_impulses(sys, after, terms.loaded, inv.rot)  # poses not yet moved: the substep's rot
+        # poses not yet moved: the substep's rot
+        after = contact_impulses(sys, after, terms.loaded, inv.rot, bodies if sys.contact_soft else None, h)
     return integrator.integrate_positions(after, h)
 
 
