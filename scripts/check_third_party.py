@@ -248,7 +248,7 @@ def main():
         summary(rows), table(rows)])
     print("\n" + text)
     if args.write_docs:
-        replace_section(DOCS, SECTION, text)
+        replace_section(DOCS, SECTION, text, keep_subsections=True)  # the hand-written reading below survives
         print(f"\nwrote {SECTION!r} in {DOCS}")
 
 

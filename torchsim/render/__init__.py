@@ -6,7 +6,7 @@
     images = render(scene, state, cam, 64, 64, rgb=True)   # images.depth (B, 64, 64), images.rgb (B, 64, 64, 3)
 
 Modules: ``scene`` (the static geom table and cameras), ``camera`` (camera poses and pixel rays), ``raycast``
-(closed-form ray-shape hits), ``trace`` (nearest hits: dense or culled by screen tiles), ``renderer`` (the entry
+(closed-form ray-shape hits), ``nearest`` (nearest hits: dense or culled by screen tiles), ``renderer`` (the entry
 point ``render``), ``frames`` (rotation helpers). ``docs/rendering.md`` has the conventions and the measured
 agreement with MuJoCo's renderer.
 """

@@ -3,7 +3,7 @@
 Per env only body poses change: the body frames are read from the state, the cameras and geoms placed on them,
 and every pixel's ray (through the pixel centre, MuJoCo's pinhole convention: :mod:`torchsim.render.camera`) is
 intersected with the geoms in closed form (:mod:`torchsim.render.raycast`), keeping the nearest hit
-(:mod:`torchsim.render.trace`: culled by screen tiles by default). Colour, where asked, is the hit geom's colour
+(:mod:`torchsim.render.nearest`: culled by screen tiles by default). Colour, where asked, is the hit geom's colour
 under a headlight. Envs are processed in chunks (``max_tests``) so memory stays bounded at any batch size.
 """
 
@@ -11,7 +11,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim.render import raycast, trace
+from torchsim.render import nearest, raycast
 from torchsim.render.camera import Camera, pixel_rays
 from torchsim.render.frames import body_frames, place
 from torchsim.render.scene import Scene
@@ -51,7 +51,7 @@ def render(scene: Scene, state, camera=0, height: int = 64, width: int = 64, *, 
             diffuse |cos|`` of the angle between the surface normal and the ray: a headlight at the camera).
         background_depth: depth of empty pixels (default ``scene.zfar``).  background_rgb: their colour.
         tile: side of the screen tiles against which geoms' bounding spheres are culled before ray casting
-            (:func:`torchsim.render.trace.tiled`); 0 tests every pixel against every geom (no data-dependent
+            (:func:`torchsim.render.nearest.tiled`); 0 tests every pixel against every geom (no data-dependent
             shapes, e.g. for ``torch.compile``). Both give the same images.
         compile: run the tiled path's hit tests through ``torch.compile`` (one fused loop per shape type instead
             of dozens of passes over memory: several times faster at large batches; the first call per shape type
@@ -97,12 +97,12 @@ def _images(scene, cam_pos, cam_rot, geom_pos, geom_rot, xs, ys, background, wan
             shading, ambient, diffuse, background_rgb):
     """Images of one chunk of envs: cameras at ``cam_pos (b, C, 3)``, ``cam_rot (b, C, 3, 3)``, geoms at
     ``geom_pos (b, G, 3)``, ``geom_rot (b, G, 3, 3)``."""
-    centre, axes, origin = trace.in_camera(cam_pos, cam_rot, geom_pos, geom_rot)
+    centre, axes, origin = nearest.in_camera(cam_pos, cam_rot, geom_pos, geom_rot)
     want_which = want_seg or want_rgb
     if tile:
-        depth, which = trace.tiled(scene, centre, origin, axes, xs, ys, tile, want_which, compiled)
+        depth, which = nearest.tiled(scene, centre, origin, axes, xs, ys, tile, want_which, compiled)
     else:
-        depth, which = trace.dense(scene, origin, axes, xs, ys, want_which)
+        depth, which = nearest.dense(scene, origin, axes, xs, ys, want_which)
     hit = torch.isfinite(depth)
     seg = torch.where(hit, scene.geom_id[which.clamp_min(0)], -1) if want_seg else None
     rgb = _shade(scene, axes, origin, depth, which, xs, ys, shading, ambient, diffuse, background_rgb) \
