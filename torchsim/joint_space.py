@@ -35,10 +35,17 @@ def hinge_incidence(jnt_child, jnt_parent, dof_jnt, dof_is_hinge, num_bodies: in
             for end, sign in ((jnt_child[joint], 1.0), (jnt_parent[joint], -1.0)):
                 if hinge and end == body:
                     incidences.append((body, dof, sign))
+    return incidence_tables(incidences)
+
+
+def incidence_tables(incidences: list):
+    """``(body, item, sign)`` incidences, grouped by body, as tensors body ``(P,)``, item ``(P,)``, sign ``(P,)``
+    and the ``(Q, 2)`` ordered pairs of incidences on a common body (the blocks of a coupling through the bodies:
+    hinges here, contact points in ``torchsim.soft_contacts``)."""
     pairs = [(i, k) for i, (b_i, _, _) in enumerate(incidences)
              for k, (b_k, _, _) in enumerate(incidences) if b_i == b_k]
-    body, dof, sign = (list(col) for col in zip(*incidences)) if incidences else ([], [], [])
-    return (torch.tensor(body, dtype=torch.long), torch.tensor(dof, dtype=torch.long),
+    body, item, sign = (list(col) for col in zip(*incidences)) if incidences else ([], [], [])
+    return (torch.tensor(body, dtype=torch.long), torch.tensor(item, dtype=torch.long),
             torch.tensor(sign, dtype=torch.float64), torch.tensor(pairs, dtype=torch.long).reshape(-1, 2))
 
 

@@ -6,6 +6,7 @@ import mujoco
 import numpy as np
 import torch
 
+from torchsim import joint_space
 from torchsim.collision import SHAPE_RANK
 from torchsim.io_mjcf.bodies import FusedBodies, compose
 from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
@@ -80,14 +81,10 @@ def contact_incidence(bodies: list, world: int) -> dict:
     (``torchsim.soft_contacts``): one row per (point, body), point ``(P,)``, ext body ``(P,)`` and sign ``(P,)``
     (+1 for the pair's first body, which the normal pushes, -1 for the second), grouped by body; and ``(Q, 2)``
     the ordered pairs of rows on a common body. ``bodies``: each point's two ext bodies; ``world``: the world's."""
-    rows = sorted(((body, point, sign) for point, pair in enumerate(bodies)
-                   for body, sign in zip(pair, (1.0, -1.0)) if body != world))
-    pairs = [(i, k) for i, row in enumerate(rows) for k, other in enumerate(rows) if row[0] == other[0]]
-    body, point, sign = (list(col) for col in zip(*rows)) if rows else ([], [], [])
-    return dict(contact_inc_point=torch.tensor(point, dtype=torch.long),
-                contact_inc_body=torch.tensor(body, dtype=torch.long),
-                contact_inc_sign=torch.tensor(sign, dtype=torch.float64),
-                contact_inc_pairs=torch.tensor(pairs, dtype=torch.long).reshape(-1, 2))
+    rows = sorted((body, point, sign) for point, pair in enumerate(bodies)
+                  for body, sign in zip(pair, (1.0, -1.0)) if body != world)
+    body, point, sign, pairs = joint_space.incidence_tables(rows)
+    return dict(contact_inc_point=point, contact_inc_body=body, contact_inc_sign=sign, contact_inc_pairs=pairs)
 
 
 def candidate_pairs(m: mujoco.MjModel) -> dict:

@@ -220,7 +220,7 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h, q)
     if sys.contact_groups:
         # poses not yet moved: the substep's rot
-        after = contact_impulses(sys, after, terms.loaded, inv.rot, bodies if sys.contact_soft else None, h)
+        after = contact_impulses(sys, after, terms.loaded, inv.rot, bodies, h)
     return integrator.integrate_positions(after, h)
 
 
