@@ -38,6 +38,33 @@ def median_time(fn, repeats):
     return float(np.median(times))
 
 
+def mujoco_frames_per_second(model, poses, eye, target, args) -> float:
+    """mujoco.Renderer's frames/s on ``--mujoco-frames`` poses, one frame at a time, from a free camera at the same
+    pose as ``Camera.look_at(eye, target)`` (lookat, distance, azimuth, elevation)."""
+    renderer = mujoco.Renderer(model, args.size, args.size)
+    if not args.rgb:
+        renderer.enable_depth_rendering()
+    free = mujoco.MjvCamera()
+    offset = np.subtract(eye, target)
+    free.lookat[:] = target
+    free.distance = float(np.linalg.norm(offset))
+    free.azimuth = float(np.degrees(np.arctan2(offset[1], offset[0]))) + 180.0
+    free.elevation = -float(np.degrees(np.arcsin(offset[2] / np.linalg.norm(offset))))
+    datas = []
+    for q in poses(args.mujoco_frames).cpu().double().numpy():
+        d = mujoco.MjData(model)
+        d.qpos[:] = q
+        mujoco.mj_forward(model, d)
+        datas.append(d)
+
+    def frames():
+        for d in datas:
+            renderer.update_scene(d, free)
+            renderer.render()
+
+    return len(datas) / median_time(frames, max(1, args.repeats // 2))
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--env", default="ant", choices=sorted(VIEW))
@@ -49,6 +76,9 @@ def main():
     parser.add_argument("--threads", type=int, default=None)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--compile", action="store_true", help="render(compile=True): hit tests via torch.compile")
+    parser.add_argument("--max-tests", type=int, default=None, help="render(max_tests=...): envs per chunk")
+    parser.add_argument("--tile", type=int, default=8, help="render(tile=...): 0 for the dense path")
+    parser.add_argument("--no-mujoco", action="store_true", help="torchsim only (no x MuJoCo column)")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -66,33 +96,12 @@ def main():
         q[:, model.jnt_qposadr[hinge]] += rng.uniform(-0.5, 0.5, (n, int(hinge.sum())))
         return torch.as_tensor(q, dtype=system.dtype, device=args.device)
 
-    # MuJoCo: one frame at a time, free camera at the same pose (lookat, distance, azimuth, elevation)
-    renderer = mujoco.Renderer(model, size, size)
-    if not args.rgb:
-        renderer.enable_depth_rendering()
-    free = mujoco.MjvCamera()
-    offset = np.subtract(eye, target)
-    free.lookat[:] = target
-    free.distance = float(np.linalg.norm(offset))
-    free.azimuth = float(np.degrees(np.arctan2(offset[1], offset[0]))) + 180.0
-    free.elevation = -float(np.degrees(np.arcsin(offset[2] / np.linalg.norm(offset))))
-    datas = []
-    for q in poses(args.mujoco_frames).cpu().double().numpy():
-        d = mujoco.MjData(model)
-        d.qpos[:] = q
-        mujoco.mj_forward(model, d)
-        datas.append(d)
-
-    def mujoco_frames():
-        for d in datas:
-            renderer.update_scene(d, free)
-            renderer.render()
-
-    mj_fps = len(datas) / median_time(mujoco_frames, max(1, args.repeats // 2))
+    mj_fps = None if args.no_mujoco else mujoco_frames_per_second(model, poses, eye, target, args)
     kind = "RGB" if args.rgb else "depth"
     print(f"{args.env}, {size}x{size} {kind}, torch threads {torch.get_num_threads()}, device {args.device}, "
-          f"compile={args.compile}, MUJOCO_GL={os.environ['MUJOCO_GL']}")
-    print(f"mujoco.Renderer: {mj_fps:.0f} frames/s (one frame at a time, {len(datas)} poses)")
+          f"compile={args.compile}, tile={args.tile}, max_tests={args.max_tests}, MUJOCO_GL={os.environ['MUJOCO_GL']}")
+    if mj_fps:
+        print(f"mujoco.Renderer: {mj_fps:.0f} frames/s (one frame at a time, {args.mujoco_frames} poses)")
     print("| batch | torchsim ms/batch | torchsim frames/s | x MuJoCo |")
     print("|---:|---:|---:|---:|")
     for batch in args.batches:
@@ -100,14 +109,16 @@ def main():
         state = torchsim.init(system, q, torch.zeros(batch, system.nv, dtype=system.dtype, device=args.device))
 
         def ours():
-            render(scene, state, camera, size, size, segmentation=False, rgb=args.rgb, compile=args.compile)
+            render(scene, state, camera, size, size, segmentation=False, rgb=args.rgb, compile=args.compile,
+                   max_tests=args.max_tests, tile=args.tile)
             if args.device != "cpu":
                 torch.cuda.synchronize()
 
         if args.compile:
             ours()  # the first call per shape type compiles
         seconds = median_time(ours, args.repeats)
-        print(f"| {batch} | {seconds * 1e3:.2f} | {batch / seconds:.0f} | {batch / seconds / mj_fps:.1f} |")
+        ratio = f"{batch / seconds / mj_fps:.1f}" if mj_fps else "-"
+        print(f"| {batch} | {seconds * 1e3:.2f} | {batch / seconds:.0f} | {ratio} |")
 
 
 if __name__ == "__main__":
