@@ -12,9 +12,11 @@ machine without a GPU is Mesa's software rasteriser).
 
 import argparse
 import os
+import sys
 import time
 
-os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported (by torchsim)
+if "--no-mujoco" not in sys.argv:  # no GL context is needed (nor may be available) when MuJoCo does not render
+    os.environ.setdefault("MUJOCO_GL", "egl")  # before mujoco is imported (by torchsim)
 
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
@@ -99,7 +101,7 @@ def main():
     mj_fps = None if args.no_mujoco else mujoco_frames_per_second(model, poses, eye, target, args)
     kind = "RGB" if args.rgb else "depth"
     print(f"{args.env}, {size}x{size} {kind}, torch threads {torch.get_num_threads()}, device {args.device}, "
-          f"compile={args.compile}, tile={args.tile}, max_tests={args.max_tests}, MUJOCO_GL={os.environ['MUJOCO_GL']}")
+          f"compile={args.compile}, tile={args.tile}, max_tests={args.max_tests}, MUJOCO_GL={os.environ.get('MUJOCO_GL')}")
     if mj_fps:
         print(f"mujoco.Renderer: {mj_fps:.0f} frames/s (one frame at a time, {args.mujoco_frames} poses)")
     print("| batch | torchsim ms/batch | torchsim frames/s | x MuJoCo |")
