@@ -58,8 +58,9 @@ def render(scene: Scene, state, camera=0, height: int = 64, width: int = 64, *, 
             and process compiles, a few seconds each, then cached on disk by inductor). Depths may differ from the
             eager ones by float rounding (~1e-6 relative).
         max_tests: bound on the ray-geom tests of one chunk of envs, counted as if nothing were culled (memory:
-            roughly 80-100 bytes each in float32 without culling, a fraction of that with it). Default: 2^23 with
-            tiles (the ant at 64x64: 146 envs per chunk, ~0.1 GiB), 2^22 without.
+            roughly 80-100 bytes each in float32 without culling, ~2-3 with it). Default on a CPU: 2^23 with
+            tiles (the ant at 64x64: 146 envs per chunk, ~0.1 GiB), 2^22 without; on a GPU 2^27 and 2^24 (fewer,
+            larger chunks: a GPU's call is launch-bound below a few thousand envs).
 
     Geoms nearer than ``scene.znear`` or farther than ``scene.zfar`` are clipped, as in MuJoCo's renderer.
     Computation is in the state's dtype and on its device.
@@ -78,7 +79,8 @@ def render(scene: Scene, state, camera=0, height: int = 64, width: int = 64, *, 
     background = scene.zfar if background_depth is None else float(background_depth)
     batch, per_env = x_pos.shape[0], max(1, cams.num * scene.num_geoms * height * width)
     if max_tests is None:
-        max_tests = 1 << (23 if tile else 22)
+        gpu = x_pos.device.type != "cpu"
+        max_tests = 1 << ((27 if gpu else 23) if tile else (24 if gpu else 22))
     chunk = max(1, int(max_tests) // per_env)
     outs = []
     for start in range(0, batch, chunk):
