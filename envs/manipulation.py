@@ -56,9 +56,9 @@ class Pusher(TorchsimEnv):
     ``-|object - goal| - 0.1 |ctrl|^2 - 0.5 |tip - object|``. No termination. Reset: the arm at its initial
     pose with rates U(-0.005, 0.005); the goal at the origin of its slides; the object uniform in
     [-0.3, 0] x [-0.2, 0.2] but at least 0.17 m from the goal (resampled up to 8 times, then pushed out radially).
-    The object is a capsule (cylinders cannot collide in torchsim). Versus MuJoCo (1 s, wrist swept into the
-    object): the object is pushed 0.63 m vs 0.56 m, but the arm joints differ by up to 0.47 rad (MuJoCo's own
-    timestep sensitivity: 0.006 rad); the cause is not found yet.
+    The object is a capsule (as in Brax); the wrist's two hinges share one body (``pusher.xml`` says why).
+    Versus MuJoCo (1 s, wrist swept into the object): the object is pushed 0.64 m vs 0.56 m and the arm joints
+    differ by up to 0.083 rad (MuJoCo's own timestep sensitivity: 0.0055 rad), from the wrist-object contact.
     """
 
     model_file = "pusher.xml"
