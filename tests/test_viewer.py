@@ -1,0 +1,267 @@
+"""The browser viewer (``torchsim.render.viewer``) and torchsim-rendered videos (``torchsim.envs.video``).
+
+The browser test opens saved viewer files in headless Chromium (Debian package ``chromium``) and checks that the
+screenshot shows each body where the state puts it: the centroid of the body's coloured pixels against the pinhole
+projection of its position through the saved camera. Skipped, with the reason, where Chromium or viser is absent.
+"""
+
+import shutil
+import subprocess
+
+import numpy as np
+import pytest
+import torch
+
+import torchsim
+from torchsim.render import Camera, Scene, render
+
+# a green ball and a blue cube, free bodies, nothing else (no floor: an empty background)
+TWO_BODIES = """
+<mujoco>
+  <worldbody>
+    <body name="ball" pos="0 0 0"><freejoint/><geom type="sphere" size="0.15" rgba="0 0.8 0 1"/></body>
+    <body name="cube" pos="0 0 0"><freejoint/><geom type="box" size="0.12 0.12 0.12" rgba="0 0 0.9 1"/></body>
+  </worldbody>
+</mujoco>
+"""
+EYE, TARGET, FOVY = (0.0, -3.0, 0.0), (0.0, 0.0, 0.0), 45.0
+VIEW_W, VIEW_H = 640, 480
+
+
+def two_bodies(ball, cube):
+    """The model's Scene and a State with the ball's and the cube's centres at ``ball`` and ``cube``."""
+    import mujoco
+
+    system = torchsim.load_mjcf(TWO_BODIES)
+    scene = Scene.build(mujoco.MjModel.from_xml_string(TWO_BODIES), system)
+    q = torch.tensor([[*ball, 1.0, 0.0, 0.0, 0.0, *cube, 1.0, 0.0, 0.0, 0.0]])
+    state = torchsim.init(system, q, torch.zeros(1, system.nv))
+    return system, scene, state
+
+
+def project(point, width, height):
+    """Pixel (column, row) of a world point through the camera EYE -> TARGET, +z up, vertical FOVY."""
+    eye, target = np.array(EYE), np.array(TARGET)
+    z = (eye - target) / np.linalg.norm(eye - target)
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    d = np.asarray(point, dtype=np.float64) - eye
+    f = (height / 2) / np.tan(np.deg2rad(FOVY) / 2)
+    return width / 2 + f * (d @ x) / -(d @ z), height / 2 - f * (d @ y) / -(d @ z)
+
+
+def centroid(rgb, channel):
+    """(column, row) centroid and count of the pixels where ``channel`` (1 green, 2 blue) exceeds both others by
+    40/255 (the viewer's lighting shades the colours; its notices are orange and grey)."""
+    rgb = rgb.astype(np.int32)
+    others = [c for c in range(3) if c != channel]
+    mask = (rgb[..., channel] > rgb[..., others[0]] + 40) & (rgb[..., channel] > rgb[..., others[1]] + 40)
+    rows, cols = np.nonzero(mask)
+    return (cols.mean() if len(cols) else np.nan, rows.mean() if len(rows) else np.nan), int(mask.sum())
+
+
+def segmentation_centroids(scene, state, width, height):
+    """(column, row) centroid of each geom's pixels in torchsim's own renderer (the exact perspective image of
+    the state, same camera), by geom id."""
+    seg = render(scene, state, Camera.look_at(EYE, TARGET, fovy=FOVY), height, width).segmentation[0].numpy()
+    out = {}
+    for geom in range(scene.num_geoms):
+        rows, cols = np.nonzero(seg == geom)
+        out[geom] = (cols.mean() + 0.5, rows.mean() + 0.5) if len(rows) else (np.nan, np.nan)
+    return out
+
+
+def test_projection_matches_torchsim_renderer():
+    """The test's pinhole projection agrees with torchsim's camera convention (so the browser check below measures
+    the viewer, not the test): a sphere's pixels in ``render`` centre on its projected centre."""
+    for ball in ((0.5, 0.0, 0.3), (0.2, -0.5, -0.4)):
+        _, scene, state = two_bodies(ball, (-0.6, 0.4, -0.2))
+        got = segmentation_centroids(scene, state, 320, 240)[0]
+        np.testing.assert_allclose(got, project(ball, 320, 240), atol=0.5)
+
+
+def test_geom_meshes_have_mujoco_sizes():
+    pytest.importorskip("viser", reason="viser not installed (pip install 'torchsim[viewer]')")
+    from torchsim.render.viewer import geom_mesh
+
+    cases = {"sphere": ((0.3, 0, 0), (0.3, 0.3, 0.3)), "ellipsoid": ((0.1, 0.2, 0.3), (0.1, 0.2, 0.3)),
+             "capsule": ((0.1, 0.4, 0), (0.1, 0.1, 0.5)), "cylinder": ((0.2, 0.3, 0), (0.2, 0.2, 0.3)),
+             "box": ((0.1, 0.2, 0.3), (0.1, 0.2, 0.3)), "plane": ((2.0, 3.0, 0.1), (2.0, 3.0, 0.0))}
+    for kind, (size, half_extent) in cases.items():
+        vertices, faces = geom_mesh(kind, size)
+        assert faces.max() < len(vertices)
+        np.testing.assert_allclose(np.abs(vertices).max(0), half_extent, rtol=0.02, atol=1e-9, err_msg=kind)
+    vertices, _ = geom_mesh("plane", (0, 0, 1), plane_extent=7.0)
+    np.testing.assert_allclose(np.abs(vertices).max(0), (7.0, 7.0, 0.0))
+
+
+def test_viewer_moves_bodies_to_state():
+    pytest.importorskip("viser", reason="viser not installed (pip install 'torchsim[viewer]')")
+    from torchsim.render.viewer import Viewer
+
+    _, scene, state = two_bodies((0.5, 0.0, 0.3), (-0.6, 0.4, -0.2))
+    viewer = Viewer(scene, host="127.0.0.1", port=8790, verbose=False)
+    try:
+        viewer.update(state)
+        np.testing.assert_allclose(viewer.bodies[0].position, (0.5, 0.0, 0.3), atol=1e-9)
+        np.testing.assert_allclose(viewer.bodies[1].position, (-0.6, 0.4, -0.2), atol=1e-9)
+        _, _, moved = two_bodies((0.1, 0.2, 0.3), (-0.6, 0.4, -0.2))
+        viewer.update(moved)
+        np.testing.assert_allclose(viewer.bodies[0].position, (0.1, 0.2, 0.3), atol=1e-9)
+    finally:
+        viewer.close()
+
+
+def _chromium():
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        if shutil.which(name):
+            return shutil.which(name)
+    return None
+
+
+def test_saved_file_in_headless_chromium(tmp_path):
+    """Two saved viewer files (the ball moved between them) side by side in one page; headless Chromium's
+    screenshot shows each body within a few pixels of its projected position, in both files."""
+    pytest.importorskip("viser", reason="viser not installed (pip install 'torchsim[viewer]')")
+    browser = _chromium()
+    if browser is None:
+        pytest.skip("no Chromium (apt-get install chromium) to open the saved viewer file")
+    from PIL import Image
+
+    from torchsim.render.viewer import save_html
+
+    cube = (-0.6, 0.4, -0.2)
+    balls = [(0.5, 0.0, 0.3), (0.2, -0.5, -0.4)]
+    expected = []
+    for i, ball in enumerate(balls):
+        _, scene, state = two_bodies(ball, cube)
+        expected.append(segmentation_centroids(scene, state, VIEW_W, VIEW_H))
+        path = save_html(scene, state, tmp_path / f"view{i}.html", eye=EYE, target=TARGET, fovy=FOVY)
+        text = path.read_text()
+        assert "__VISER_EMBED_DATA__" in text and "<script" in text  # the client and the data in one file
+    frames = "".join(f'<iframe src="view{i}.html" style="position:absolute;left:{i * VIEW_W}px;top:0;border:0" '
+                     f'width="{VIEW_W}" height="{VIEW_H}"></iframe>' for i in range(2))
+    (tmp_path / "both.html").write_text(f"<html><body style='margin:0'>{frames}</body></html>")
+    shot = tmp_path / "shot.png"
+    # software WebGL (SwiftShader); no sandbox: CI containers run as root or without user namespaces
+    cmd = [browser, "--headless", "--no-sandbox", "--hide-scrollbars", "--mute-audio", "--enable-unsafe-swiftshader",
+           f"--window-size={2 * VIEW_W},{VIEW_H}", "--virtual-time-budget=3000", f"--screenshot={shot}",
+           (tmp_path / "both.html").as_uri()]
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=120, check=False)
+    assert shot.exists(), f"Chromium wrote no screenshot: {proc.stderr[-2000:]}"
+    image = np.asarray(Image.open(shot).convert("RGB"))
+    assert image.shape[:2] == (VIEW_H, 2 * VIEW_W)
+    for i, ball in enumerate(balls):
+        view = image[:, i * VIEW_W:(i + 1) * VIEW_W]
+        for channel, geom in ((1, 0), (2, 1)):  # green ball, blue cube
+            (col, row), count = centroid(view, channel)
+            want = expected[i][geom]
+            assert count > 500, f"view {i}: body of colour channel {channel} not seen ({count} pixels)"
+            assert abs(col - want[0]) < 2 and abs(row - want[1]) < 2, \
+                f"view {i}: centroid {(col, row)} where the state (torchsim's renderer) has {want}"
+        # and the ball's centre, by the pinhole projection of its position
+        np.testing.assert_allclose(centroid(view, 1)[0], project(ball, VIEW_W, VIEW_H), atol=2.0)
+    # the ball moved by (-0.3, -0.5, -0.7) m between the files: so did its pixels, by the projected amount
+    shift = np.subtract(centroid(image[:, VIEW_W:], 1)[0], centroid(image[:, :VIEW_W], 1)[0])
+    expected_shift = np.subtract(project(balls[1], VIEW_W, VIEW_H), project(balls[0], VIEW_W, VIEW_H))
+    assert np.all(np.abs(shift - expected_shift) < 3) and np.linalg.norm(expected_shift) > 100
+
+
+# ------------------------------------------------------------------------------------------------ videos (torchsim)
+BALL_ON_FLOOR = """
+<mujoco>
+  <worldbody>
+    <geom name="floor" type="plane" size="3 3 0.1" rgba="0.5 0.5 0.5 1"/>
+    <body name="ball" pos="0 0 0.3"><freejoint/><geom type="sphere" size="0.2" rgba="0.9 0.1 0.1 1"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def rolling_ball(frames=6):
+    """The model, its System and a trajectory moving the ball 1.5 m along x, 0.3 m above the floor."""
+    import mujoco
+
+    model = mujoco.MjModel.from_xml_string(BALL_ON_FLOOR)
+    system = torchsim.load_mjcf(BALL_ON_FLOOR)
+    qpos = np.zeros((frames, 7))
+    qpos[:, 0], qpos[:, 2], qpos[:, 3] = np.linspace(0.0, 1.5, frames), 0.3, 1.0
+    return model, system, qpos
+
+
+def red_centroid(frame):
+    rgb = frame.astype(np.int32)
+    rows, cols = np.nonzero((rgb[..., 0] > rgb[..., 1] + 60) & (rgb[..., 0] > rgb[..., 2] + 60))
+    return cols.mean() + 0.5, rows.mean() + 0.5
+
+
+def test_video_frames_track_the_body_over_a_checkered_floor():
+    """The default camera follows the ball (it stays at the image centre) while the floor's checkerboard slides
+    past; a world-fixed look-at camera sees the ball move by its projected displacement."""
+    from torchsim.envs.video import render_frames_torchsim
+
+    model, system, qpos = rolling_ball()
+    frames = render_frames_torchsim(model, system, qpos, 96, 72, distance=3.0)
+    assert len(frames) == len(qpos) and frames[0].shape == (72, 96, 3) and frames[0].dtype == np.uint8
+    for frame in frames:
+        np.testing.assert_allclose(red_centroid(frame), (48, 36), atol=1.0)
+    changed = lambda a, b: (np.abs(a[60:].astype(np.int32) - b[60:]) > 8).mean()  # rows below the ball: floor
+    assert changed(frames[1], frames[0]) > 0.05  # the squares moved under the tracked camera
+    plain = render_frames_torchsim(model, system, qpos, 96, 72, distance=3.0, checker=0)
+    assert changed(plain[1], plain[0]) == 0  # without squares: a still floor
+    eye, target = (0.0, -3.0, 0.3), (0.0, 0.0, 0.3)
+    fixed = render_frames_torchsim(model, system, qpos, 96, 72, camera=Camera.look_at(eye, target, fovy=FOVY))
+    global EYE, TARGET
+    saved, (EYE, TARGET) = (EYE, TARGET), (eye, target)
+    try:
+        for frame, q in zip(fixed, qpos):
+            np.testing.assert_allclose(red_centroid(frame), project(q[:3], 96, 72), atol=1.0)
+    finally:
+        EYE, TARGET = saved
+
+
+def test_save_video_gif_and_mp4(tmp_path):
+    import importlib.util
+
+    from PIL import Image
+
+    from torchsim.envs.video import save_video
+
+    frames = [np.full((31, 41, 3), 8 * i, dtype=np.uint8) for i in range(12)]
+    gif = save_video(frames, tmp_path / "a.gif", fps=20)
+    with Image.open(gif) as im:
+        assert im.n_frames == 12 and im.size == (41, 31) and im.info["duration"] == 50
+    if importlib.util.find_spec("imageio_ffmpeg") is None:
+        with pytest.warns(UserWarning, match="MP4 needs imageio"):
+            out = save_video(frames, tmp_path / "a.mp4", fps=20)
+        assert out.suffix == ".gif" and out.exists()
+    else:
+        import imageio.v2 as imageio
+
+        out = save_video(frames, tmp_path / "a.mp4", fps=20)
+        back = imageio.mimread(out)
+        assert out.suffix == ".mp4" and len(back) == 12 and back[0].shape == (32, 42, 3)  # padded to even sides
+        assert abs(int(back[6][5, 5, 0]) - 48) <= 3
+
+
+def test_training_video_renders_in_process(tmp_path, monkeypatch):
+    """``render_gif`` (a training run's policy.gif) draws with torchsim's renderer in this process: no child
+    process is started, and the GIF has one frame per recorded state."""
+    import subprocess as sp
+
+    import torchsim.envs
+    from torchsim.algos import common
+
+    def no_child(*args, **kwargs):
+        raise AssertionError("started a child process")
+
+    monkeypatch.setattr(sp, "run", no_child)
+    env = torchsim.envs.make("reacher")
+    qpos = env.sys.q0[None].repeat(4, 1).double().numpy()
+    qpos[:, 0] = np.linspace(0.0, 1.0, 4)
+    common.render_gif("reacher", qpos, env.dt, tmp_path / "policy.gif", width=64, height=48)
+    from PIL import Image
+
+    with Image.open(tmp_path / "policy.gif") as im:
+        assert im.n_frames == 4 and im.size == (64, 48)
