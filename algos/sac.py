@@ -10,10 +10,13 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate
 
-from torchsim.algos.common import Run, make_actor, make_env, make_value, maybe_compile, obs_norm
+from torchsim.algos.common import Run, make_actor, make_env, make_eval_env, make_value, maybe_compile, obs_norm
+from torchsim.algos.distributed import Ranks
 
 
-def train(cfg, out_dir) -> Run:
+def train(cfg, out_dir, ranks: Ranks = Ranks()) -> Run:
+    if ranks.parallel:  # its many small updates per env step would wait on an all-reduce each
+        raise ValueError("algo=sac runs in one process; data-parallel training (torchrun) is for algo=ppo")
     a, device = cfg.algo, torch.device(cfg.device)
     env = make_env(cfg, a.num_envs, device, train=True)
     actor = make_actor(env, a.policy_net, device)
@@ -26,7 +29,7 @@ def train(cfg, out_dir) -> Run:
     optim = torch.optim.Adam(loss_module.parameters(), lr=a.lr)
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(a.buffer_size, device=device), batch_size=a.batch_size)
     run = Run(cfg, out_dir, {"loss": loss_module, "optim": optim, "obs_norm": obs_norm(env)}, actor,
-              eval_env=make_env(cfg, cfg.eval.episodes, device, like=env), train_env=env)
+              eval_env=make_eval_env(cfg, env), train_env=env)
     collector = Collector(env, actor, frames_per_batch=a.num_envs * a.unroll, total_frames=-1, device=device,
                           auto_register_policy_transforms=False,
                           init_random_frames=0 if cfg.resume else a.random_frames)

@@ -6,8 +6,10 @@ Configs live in ``torchsim/algos/configs`` (``--cfg job`` prints the composed on
 """
 
 import logging
+import os
 import pathlib
 import sys
+import tempfile
 
 import hydra
 import torch
@@ -18,25 +20,34 @@ import torchsim.algos
 import torchsim.progress
 from torchsim.algos import ppo, sac
 from torchsim.algos.common import Run, TrainingDiverged
+from torchsim.algos.distributed import Ranks
 
 CONFIG_DIR = str(pathlib.Path(torchsim.algos.__file__).parent / "configs")
 RECIPES = {"ppo": ppo.train, "sac": sac.train}
 
 
 def run(cfg: DictConfig, out_dir) -> Run:
-    """Run the recipe ``cfg.algo.name`` with ``cfg``, writing into ``out_dir``; return the finished run."""
-    prepare(cfg)
-    return RECIPES[cfg.algo.name](cfg, out_dir)
+    """Run the recipe ``cfg.algo.name`` with ``cfg``, writing into ``out_dir``; return the finished run. Under
+    ``torchrun`` this process is one rank of a data-parallel run (``torchsim.algos.distributed``)."""
+    ranks = Ranks.from_env(cfg.device)
+    try:
+        prepare(cfg, ranks)
+        return RECIPES[cfg.algo.name](cfg, out_dir, ranks)
+    finally:
+        ranks.close()
 
 
-def prepare(cfg: DictConfig) -> None:
-    """The process-wide settings a run of ``cfg`` uses: compile announcements, threads, seed (the envs' steppers
-    follow ``cfg.compile``: ``torchsim.algos.common.make_env``)."""
+def prepare(cfg: DictConfig, ranks: Ranks = Ranks()) -> None:
+    """The process-wide settings a run of ``cfg`` uses: compile announcements, threads (a rank's share of the
+    machine's cores where ``cfg.threads`` is null and several ranks share it), seed (``seed + rank``: every rank
+    draws its own envs; rank 0's networks are broadcast). The envs' steppers follow ``cfg.compile``
+    (``torchsim.algos.common.make_env``)."""
     torchsim.progress.announce_torch_compiles()
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # its storage-allocation notices are not progress
-    if cfg.threads is not None:
-        torch.set_num_threads(cfg.threads)
-    torch.manual_seed(cfg.seed)
+    threads = cfg.threads if cfg.threads is not None or not ranks.parallel else ranks.threads()
+    if threads is not None:
+        torch.set_num_threads(threads)
+    torch.manual_seed(cfg.seed + ranks.rank)
 
 
 @hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
@@ -49,4 +60,6 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    if int(os.environ.get("RANK", "0")) > 0:  # under torchrun only rank 0 writes a run directory and a log
+        sys.argv += ["hydra.output_subdir=null", "hydra/job_logging=disabled", f"hydra.run.dir={tempfile.gettempdir()}"]
     main()
