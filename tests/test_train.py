@@ -95,7 +95,7 @@ def test_lr_falls_linearly_to_zero_at_the_env_step_budget(tmp_path):
     """Three updates of 16 env steps: the schedule spans exactly them and leaves the rate at 0."""
     finished = run(tiny("ppo", "algo.anneal_lr=true", "algo.lr=1e-3", "budget.env_steps=48"), tmp_path)
     schedule = finished.state["lr_schedule"]
-    assert finished.iteration == 3 and schedule.total_iters == 3
+    assert finished.iteration == 3 and schedule.lr_lambdas[0].total == 3
     assert finished.state["optim"].param_groups[0]["lr"] == schedule.get_last_lr()[0] == 0.0
     with pytest.raises(ValueError, match="budget.env_steps"):
         run(tiny("ppo", "algo.anneal_lr=true", "budget.env_steps=null", "budget.minutes=1"), tmp_path / "no_budget")
