@@ -20,6 +20,9 @@ class Reacher(TorchsimEnv):
 
     model_file = "reacher.xml"
     frame_skip = 2
+    # 30 substeps (0.33 ms): at 20 a shoulder spun up to 45 rad/s by random actions can whirl its arm out of the
+    # plane, the joint springs' held gains too slow for the spin (1 of 4096 envs in the soak, docs/stability.md)
+    substeps = 30
     observation_size = 11
 
     named_bodies = ("fingertip", "target")
