@@ -105,18 +105,77 @@ def mlp(in_features: int, out_features: int, cfg_net: DictConfig, device) -> MLP
                activation_class=ACTIVATIONS[cfg_net.activation], device=device)
 
 
+#: The pixel networks' encoder when ``cfg_net.cnn`` leaves a key out: conv layers (output channels, kernel,
+#: stride), ReLU after each; a linear layer to ``features``, LayerNorm and tanh; depth images are clipped at
+#: ``depth_max`` [m] and scaled to [0, 1] (RGB: divided by 255).
+CNN_DEFAULTS = {"channels": [16, 32], "kernels": [4, 3], "strides": [4, 2], "features": 64,
+                "depth_max": 3.0}
+
+
+class PixelNet(nn.Module):
+    """A small CNN on ``pixels (..., C, H, W)`` (uint8 RGB or float depth), its features concatenated with the
+    vector inputs (e.g. ``observation``, ``action``) and fed to an MLP head (``cfg_net.hidden``), then ``post``."""
+
+    def __init__(self, pixel_spec, vector_dim: int, out_features: int, cfg_net: DictConfig, device,
+                 post: nn.Module | None = None):
+        super().__init__()
+        cnn = {**CNN_DEFAULTS, **cfg_net.get("cnn", {})}
+        c, h, w = pixel_spec.shape[-3:]
+        self.rgb, self.depth_max = pixel_spec.dtype == torch.uint8, float(cnn["depth_max"])
+        layers = []
+        for out, k, stride in zip(cnn["channels"], cnn["kernels"], cnn["strides"]):
+            layers += [nn.Conv2d(c, out, k, stride, device=device), nn.ReLU()]
+            c = out
+        self.conv = nn.Sequential(*layers, nn.Flatten())
+        with torch.no_grad():
+            flat = self.conv(torch.zeros(1, pixel_spec.shape[-3], h, w, device=device)).shape[-1]
+        self.project = nn.Sequential(nn.Linear(flat, cnn["features"], device=device),
+                                     nn.LayerNorm(cnn["features"], device=device), nn.Tanh())
+        self.head = mlp(cnn["features"] + vector_dim, out_features, cfg_net, device)
+        self.post = post if post is not None else nn.Identity()
+
+    def forward(self, pixels: torch.Tensor, *vectors: torch.Tensor) -> torch.Tensor:
+        lead = pixels.shape[:-3]
+        x = pixels.reshape(-1, *pixels.shape[-3:])
+        x = x.float() / 255.0 if self.rgb else x.clamp(0.0, self.depth_max) / self.depth_max
+        z = self.project(self.conv(x)).reshape(*lead, -1)
+        return self.post(self.head(torch.cat((z, *vectors), -1)))
+
+
+def _inputs(env) -> tuple[list, int]:
+    """The vector inputs of the networks (``observation``, if the env emits it) and their total size."""
+    keys = [k for k in ("observation",) if k in env.observation_spec.keys()]
+    return keys, sum(env.observation_spec[k].shape[-1] for k in keys)
+
+
 def make_actor(env, cfg_net: DictConfig, device) -> ProbabilisticActor:
-    """Tanh-squashed Gaussian policy on ``observation``; its deterministic action is ``tanh(loc)``."""
-    obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
-    net = nn.Sequential(mlp(obs_dim, 2 * act_dim, cfg_net, device), NormalParamExtractor(scale_lb=1e-3))
-    return ProbabilisticActor(TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"]),
-                              in_keys=["loc", "scale"], spec=env.action_spec_unbatched,
+    """Tanh-squashed Gaussian policy on ``observation``; its deterministic action is ``tanh(loc)``. An env with
+    ``pixels`` gets a :class:`PixelNet` on the images and ``observation`` (if it emits one)."""
+    act_dim = env.action_spec.shape[-1]
+    if "pixels" in env.observation_spec.keys():
+        keys, dim = _inputs(env)
+        net = PixelNet(env.observation_spec["pixels"], dim, 2 * act_dim, cfg_net, device,
+                       post=NormalParamExtractor(scale_lb=1e-3))
+        module = TensorDictModule(net, in_keys=["pixels", *keys], out_keys=["loc", "scale"])
+    else:
+        obs_dim = env.observation_spec["observation"].shape[-1]
+        net = nn.Sequential(mlp(obs_dim, 2 * act_dim, cfg_net, device), NormalParamExtractor(scale_lb=1e-3))
+        module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
+    return ProbabilisticActor(module, in_keys=["loc", "scale"], spec=env.action_spec_unbatched,
                               distribution_class=TanhNormal, return_log_prob=True)
 
 
 def make_value(env, cfg_net: DictConfig, device, with_action: bool) -> ValueOperator:
-    """V(observation) or, ``with_action``, Q(observation, action) (torchrl's MLP concatenates its inputs)."""
-    obs_dim, act_dim = env.observation_spec["observation"].shape[-1], env.action_spec.shape[-1]
+    """V(observation) or, ``with_action``, Q(observation, action) (torchrl's MLP concatenates its inputs); with
+    ``pixels``, a :class:`PixelNet` on the images and the vectors."""
+    act_dim = env.action_spec.shape[-1]
+    if "pixels" in env.observation_spec.keys():
+        keys, dim = _inputs(env)
+        keys, dim = (keys + ["action"], dim + act_dim) if with_action else (keys, dim)
+        net = PixelNet(env.observation_spec["pixels"], dim, 1, cfg_net, device)
+        out = ["state_action_value"] if with_action else ["state_value"]
+        return ValueOperator(net, in_keys=["pixels", *keys], out_keys=out)
+    obs_dim = env.observation_spec["observation"].shape[-1]
     if with_action:
         return ValueOperator(mlp(obs_dim + act_dim, 1, cfg_net, device), in_keys=["observation", "action"],
                              out_keys=["state_action_value"])
@@ -182,14 +241,28 @@ def load_policy(ckpt: dict, env: TransformedEnv, device) -> ProbabilisticActor:
     return actor
 
 
-def render_gif(env_name: str, qpos: np.ndarray, dt: float, path: pathlib.Path) -> None:
-    """Write a GIF of ``qpos`` through ``torchsim.envs.video`` in a child process: MuJoCo picks its GL backend
-    when first imported (``MUJOCO_GL``), which in this process happened before we could choose EGL."""
+def render_gif(env_name: str, qpos: np.ndarray, dt: float, path: pathlib.Path, renderer: str = "torchsim",
+               width: int = 320, height: int = 240) -> None:
+    """Write a ``width`` x ``height`` GIF of ``qpos``. ``renderer="torchsim"`` (default): torchsim's own renderer,
+    in this process (no GL context; ``torchsim.envs.video.render_frames_torchsim``); models it cannot draw (meshes)
+    fall back to ``"mujoco"``: MuJoCo's renderer in a child process, as MuJoCo picks its GL backend when first imported
+    (``MUJOCO_GL``), which in this process happened before we could choose EGL."""
     path = pathlib.Path(path)
+    if renderer == "torchsim":
+        from torchsim.envs.video import render_frames_torchsim, save_gif
+        from torchsim.render import UnsupportedGeomError
+
+        task = torchsim.envs.make(env_name)
+        try:
+            save_gif(render_frames_torchsim(task.mj_model, task.sys, qpos, width, height), path, fps=1.0 / dt)
+            log.info(f"video: {path}")
+            return
+        except UnsupportedGeomError as err:
+            log.info(f"torchsim's renderer cannot draw {env_name} ({err}); rendering with MuJoCo")
     np.save(path.with_suffix(".npy"), qpos)
     env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
     proc = subprocess.run([sys.executable, "-m", "torchsim.algos.render", env_name, str(path.with_suffix(".npy")),
-                           str(path), str(1.0 / dt)], env=env, capture_output=True, text=True)
+                           str(path), str(1.0 / dt), str(width), str(height)], env=env, capture_output=True, text=True)
     if proc.returncode:
         warnings.warn(f"no video ({proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else 'render failed'})")
     else:

@@ -9,6 +9,7 @@ from torchsim.envs.base import ASSETS_DIR, TorchsimEnv, asset_path
 from torchsim.envs.locomotion import Ant, HalfCheetah, Hopper, Humanoid, Walker2d
 from torchsim.envs.manipulation import Pusher, Reacher
 from torchsim.envs.pendulums import InvertedDoublePendulum, InvertedPendulum
+from torchsim.envs.pixels import pendulum_strip
 from torchsim.envs.targets import Fetch, Grasp
 from torchsim.envs.ur5e import UR5eReach
 
@@ -19,6 +20,22 @@ ENVS = {
     "grasp": Grasp, "fetch": Fetch,
 }
 
+#: Pixel versions of tasks (``torchsim.envs.pixels``): name -> (task, default keyword arguments). Not in
+#: :func:`list` (the state tasks); :func:`make` builds them, its keyword arguments overriding these.
+PIXEL_ENVS = {
+    # top-down RGB 48x48; the policy gets the arm's angles and rates, the target only through the image
+    "reacher_pixels": ("reacher", dict(from_pixels=True, pixel_size=48, pixel_state="proprio",
+                                       render_compile=True)),
+    # depth 48x48 from a camera riding on the cart, 2 stacked frames; the policy gets the cart's position and
+    # velocity, the pole's angle and rate only through the images
+    "inverted_pendulum_pixels": ("inverted_pendulum", dict(from_pixels=True, pixel_size=48, pixel_state="proprio",
+                                                           frame_stack=2, render_compile=True)),
+    # the same through a 24x96 strip across the pole (0.63 cm per pixel instead of 1.9)
+    "inverted_pendulum_pixels_strip": ("inverted_pendulum", dict(
+        from_pixels=True, cameras=pendulum_strip, pixel_size=(24, 96), pixel_state="proprio", frame_stack=2,
+        render_compile=True)),
+}
+
 
 def list() -> builtins.list[str]:  # noqa: A001 - the public name asked for: torchsim.envs.list()
     """Names accepted by :func:`make`."""
@@ -27,9 +44,14 @@ def list() -> builtins.list[str]:  # noqa: A001 - the public name asked for: tor
 
 def make(name: str, num_envs: int = 1, device="cpu", **kwargs) -> TorchsimEnv:
     """Build env ``name`` with ``batch_size=(num_envs,)`` on ``device``; ``kwargs`` go to the env class
-    (``dtype``, ``episode_length``, ``native_autoreset``, ``method``, ``substeps``, ``stagger_episodes``, ``stepper``)."""
+    (``dtype``, ``episode_length``, ``native_autoreset``, ``method``, ``substeps``, ``stagger_episodes``, ``stepper``,
+    and the pixel options ``from_pixels``, ``cameras``, ``pixel_size``, ``pixel_kind``, ``pixel_state``,
+    ``frame_stack``, ``render_compile``: :class:`TorchsimEnv`). ``name`` may also be one of :data:`PIXEL_ENVS`."""
+    if name in PIXEL_ENVS:
+        task, defaults = PIXEL_ENVS[name]
+        return ENVS[task](num_envs, device=device, **{**defaults, **kwargs})
     if name not in ENVS:
-        raise ValueError(f"unknown env {name!r}; available: {', '.join(ENVS)}")
+        raise ValueError(f"unknown env {name!r}; available: {', '.join(ENVS)}, {', '.join(PIXEL_ENVS)}")
     return ENVS[name](num_envs, device=device, **kwargs)
 
 

@@ -19,6 +19,7 @@ from torchrl.data import Bounded, Categorical, Composite, Unbounded
 from torchrl.envs import EnvBase
 
 import torchsim
+from torchsim.envs.pixels import PixelObservation
 from torchsim.io_urdf import urdf_to_mjcf
 from torchsim.state import State
 
@@ -77,6 +78,13 @@ class TorchsimEnv(EnvBase):
         stepper: how the physics steps (``torchsim.Stepper``): ``"eager"`` (the reference step), ``"auto"`` (the
             fastest compiled strategy for the model) or a strategy name; or another env's ``stepper``, whose System
             and compiled step this env then shares (an evaluation env beside a training env compiles nothing).
+        from_pixels: also emit camera images as ``pixels`` (``torchsim.envs.pixels``), rendered from the state
+            after every step and reset. cameras: a model camera's name or index, a ``torchsim.render.Camera``, a
+            list of these, or ``f(scene, mj_model)`` returning one (default: the task's, ``pixels.PIXEL_TASKS``).
+            pixel_size: ``H = W`` or ``(H, W)``. pixel_kind: ``"rgb"`` (uint8, channels first) or ``"depth"``
+            (float, metres); default: the task's. pixel_state: what ``observation`` holds beside the images:
+            ``"full"`` (the state vector), ``"proprio"`` (the task's proprioceptive part) or ``"none"``.
+            frame_stack: frames stacked on the channel axis. render_compile: ``render(..., compile=True)``.
     """
 
     #: The model asset in ``envs/assets``: MJCF (``.xml``) or URDF (``.urdf``, translated by ``urdf_to_mjcf``).
@@ -105,7 +113,9 @@ class TorchsimEnv(EnvBase):
 
     def __init__(self, num_envs: int = 1, *, device="cpu", dtype=torch.float32, episode_length: int = 1000,
                  native_autoreset: bool = False, method: str | None = None, substeps: int | None = None,
-                 stagger_episodes: bool = False, stepper: "str | torchsim.Stepper" = "eager"):
+                 stagger_episodes: bool = False, stepper: "str | torchsim.Stepper" = "eager",
+                 from_pixels: bool = False, cameras=None, pixel_size=48, pixel_kind: str | None = None,
+                 pixel_state: str = "full", frame_stack: int = 1, render_compile: bool = False):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs}")
         super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
@@ -134,9 +144,15 @@ class TorchsimEnv(EnvBase):
         self.register_buffer("ctrl_low", ctrl_range[:, 0])
         self.register_buffer("ctrl_high", ctrl_range[:, 1])
         self._setup()
+        self.pixel_obs = None
+        if from_pixels:
+            self.pixel_obs = PixelObservation(self, cameras, pixel_size, pixel_kind, pixel_state, frame_stack,
+                                              render_compile)
         self._make_specs(dtype)
         self.state = self._initial_state()
         self.task = self._sample_task(self.state)
+        if self.pixel_obs is not None:
+            self.pixel_obs.update(self.state)
         obs = self._observation(self.state, self._zero_ctrl())
         if obs.shape != (*self.batch_size, self.observation_size):
             raise RuntimeError(f"{type(self).__name__}: observation has shape {tuple(obs.shape)}, expected "
@@ -229,6 +245,13 @@ class TorchsimEnv(EnvBase):
         if self.success_distance is not None:
             self.observation_spec["goal_distance"] = Unbounded((*shape, 1), dtype=dtype, device=dev)
         self.action_spec = Bounded(-1.0, 1.0, (*shape, self.sys.nu), dtype=dtype, device=dev)
+        if self.pixel_obs is not None:
+            self.observation_spec["pixels"] = self.pixel_obs.spec()
+            size = self.pixel_obs.observation_size(self.observation_size)
+            if size is None:
+                del self.observation_spec["observation"]
+            else:
+                self.observation_spec["observation"] = Unbounded((*shape, size), dtype=dtype, device=dev)
         self.reward_spec = Unbounded((*shape, 1), dtype=dtype, device=dev)
         flag = lambda: Categorical(2, (*shape, 1), dtype=torch.bool, device=dev)  # noqa: E731
         self.full_done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=shape)
@@ -238,6 +261,9 @@ class TorchsimEnv(EnvBase):
         ``fields``."""
         if self.success_distance is not None:
             fields["goal_distance"] = self._goal_distance(state)[:, None]
+        if self.pixel_obs is not None:
+            return TensorDict(**self.pixel_obs.fields(self._observation(state, ctrl)), **fields,
+                              batch_size=self.batch_size, device=self.device)
         return TensorDict(observation=self._observation(state, ctrl), **fields, batch_size=self.batch_size,
                           device=self.device)
 
@@ -252,6 +278,9 @@ class TorchsimEnv(EnvBase):
             raise ValueError(f"task must have shape {(*self.batch_size, self.task_size)}, got {tuple(task.shape)}")
         self.task = task.to(device=self.device, dtype=self.sys.dtype)
         self.step_count.zero_()
+        if self.pixel_obs is not None:
+            self.pixel_obs.reset_stack()
+            self.pixel_obs.update(self.state)
         return self._observation(self.state, self._zero_ctrl())
 
     def set_physics(self, **scales) -> None:
@@ -296,6 +325,9 @@ class TorchsimEnv(EnvBase):
                 self.step_count.copy_(torch.randint_like(self.step_count, self.episode_length))
             else:
                 self.step_count.zero_()
+            if self.pixel_obs is not None:
+                self.pixel_obs.reset_stack()
+                self.pixel_obs.update(self.state)
         else:
             # Start states for the flagged envs only: building one runs eager kinematics, which for every env cost
             # a 2048-env Ant collector step ~9 ms, more than its share of the physics, to restart a few envs.
@@ -304,6 +336,8 @@ class TorchsimEnv(EnvBase):
             self.state = State(*(old.index_copy(0, rows, new) for old, new in zip(self.state, fresh)))
             self.task = self.task.index_copy(0, rows, self._sample_task(fresh))
             self.step_count.index_fill_(0, rows, 0)
+            if self.pixel_obs is not None:
+                self.pixel_obs.update(self.state, rows=rows)
         no = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         return self._output(self.state, self._zero_ctrl(), done=no, terminated=no.clone(), truncated=no.clone())
 
@@ -333,6 +367,9 @@ class TorchsimEnv(EnvBase):
             self.step_count.copy_(torch.where(done, 0, self.step_count))
             ctrl = torch.where(done[:, None], 0.0, ctrl)
         self.state, self.task = state, task
+        if self.pixel_obs is not None:
+            native = self.__dict__.get("_torchrl_native_autoreset", False)
+            self.pixel_obs.update(state, restart=done if native else None)
         return self._output(state, ctrl, reward=reward[:, None].to(self.sys.dtype), done=done[:, None],
                             terminated=terminated[:, None], truncated=truncated[:, None])
 

@@ -1,0 +1,149 @@
+"""Pixel observations of the envs (``torchsim.envs.pixels``) and the pixel networks of the recipes."""
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from tensordict import TensorDict
+from torchrl.envs.utils import check_env_specs
+
+import torchsim.envs as envs
+from torchsim.algos.common import make_actor, make_value
+from torchsim.render import Camera, render
+
+torch.set_num_threads(1)
+
+SMALL = dict(render_compile=False, pixel_size=24)
+
+
+def random_steps(env, n, seed=0):
+    torch.manual_seed(seed)
+    td = env.reset()
+    for _ in range(n):
+        td = env.step(td.set("action", 2 * torch.rand(env.action_spec.shape) - 1))
+        td = env.step_mdp(td)
+    return td
+
+
+@pytest.mark.parametrize("name", ["reacher_pixels", "inverted_pendulum_pixels"])
+def test_check_env_specs(name):
+    env = envs.make(name, 4, **SMALL)
+    check_env_specs(env)
+    spec = env.observation_spec["pixels"]
+    channels = 3 if name == "reacher_pixels" else 2  # RGB; 2 stacked depth frames
+    assert spec.shape == (4, channels, 24, 24)
+    assert spec.dtype == (torch.uint8 if name == "reacher_pixels" else torch.float32)
+    assert env.observation_spec["observation"].shape == (4, 6 if name == "reacher_pixels" else 2)
+
+
+def test_pendulum_strip_camera_sees_the_tilt():
+    """The 24x96 strip (a camera given as a function of the scene): the pole's column moves with its angle."""
+    env = envs.make("inverted_pendulum_pixels_strip", 3, render_compile=False)
+    check_env_specs(env)
+    assert env.observation_spec["pixels"].shape == (3, 2, 24, 96)
+    env.set_state(torch.tensor([[0.0, -0.1], [0.0, 0.0], [0.5, 0.1]]), torch.zeros(3, 2))
+    pole = env.pixel_obs.frames[:, -1] < 2.0  # (B, H, W): pixels that see the pole, the rest sees nothing
+    column = (pole.float() * torch.arange(96.0)).sum((1, 2)) / pole.sum((1, 2))  # the pole's mean column
+    assert abs(column[1] - 47.5) < 1  # upright: centred
+    # 0.1 rad moves the pole 4.5 cm at the strip's 0.45 m, 7 pixels of 0.63 cm either way; the cart's place does
+    # not matter (the camera rides on it)
+    assert 5 < abs(column[0] - column[1]) < 9 and abs((column[0] + column[2]) / 2 - column[1]) < 1
+
+
+def test_options_shapes_and_specs():
+    cams = [Camera.look_at((0, -1, 1), (0, 0, 0)), Camera.look_at((1, 0, 1), (0, 0, 0))]
+    env = envs.make("reacher", 3, from_pixels=True, cameras=cams, pixel_size=(16, 20), pixel_kind="depth",
+                    pixel_state="none", frame_stack=3)
+    check_env_specs(env)
+    td = env.reset()
+    assert td["pixels"].shape == (3, 6, 16, 20) and td["pixels"].dtype == torch.float32
+    assert "observation" not in td.keys() and "observation" not in env.observation_spec.keys()
+    assert "pixels" not in envs.make("reacher", 2).reset().keys()  # the state env is as before
+    env = envs.make("ant", 2, from_pixels=True, **SMALL)  # a task without pixel defaults: the overview camera
+    check_env_specs(env)
+    assert env.observation_spec["pixels"].shape == (2, 3, 24, 24)
+    assert env.reset()["pixels"].float().std() > 0  # the ant is in view, not an empty frame
+    with pytest.raises(ValueError, match="no proprioceptive observation"):
+        envs.make("ant", 2, from_pixels=True, pixel_state="proprio")
+
+
+def test_pixels_equal_a_direct_render_of_the_state():
+    env = envs.make("reacher_pixels", 5, render_compile=False)  # the training size, 48x48
+    td = random_steps(env, 3)
+    scene, cam = env.pixel_obs.scene, env.pixel_obs.camera
+    rgb = render(scene, env.state, cam, 48, 48, rgb=True, shading="flat").rgb  # (B, H, W, 3) in [0, 1]
+    expected = (rgb * 255).round().to(torch.uint8).permute(0, 3, 1, 2)
+    assert torch.equal(td["pixels"], expected)
+    # at 48x48 every env's image shows the target (reacher.xml's red, 0.9 0.2 0.2) and the fingertip
+    for colour in ((230, 51, 51), (0, 204, 153)):
+        seen = (td["pixels"] == torch.tensor(colour, dtype=torch.uint8)[:, None, None]).all(1).flatten(1).any(1)
+        assert seen.all(), colour
+    # proprioception: the state observation's angle and rate columns, not the target
+    full = env._observation(env.state, env._zero_ctrl())
+    assert torch.equal(td["observation"], full[:, [0, 1, 2, 3, 6, 7]])
+
+    env = envs.make("inverted_pendulum_pixels", 4, **SMALL)
+    before = random_steps(env, 2)["pixels"]
+    td = env.step(TensorDict(action=torch.full((4, 1), 0.5), pixels=before, batch_size=[4]))
+    depth = render(scene := env.pixel_obs.scene, env.state, env.pixel_obs.camera, 24, 24).depth
+    after = td["next", "pixels"]
+    assert torch.equal(after[:, 1], depth)  # the newest frame last
+    assert torch.equal(after[:, 0], before[:, 1])  # the previous newest moved down the stack
+    assert ((depth > 1.0) & (depth < 2.0)).any() and (depth == scene.zfar).any()  # pole at ~1.5 m, background
+
+
+@pytest.mark.parametrize("name", ["reacher_pixels", "inverted_pendulum_pixels"])
+def test_partial_reset_leaves_other_envs_images(name):
+    env = envs.make(name, 6, **SMALL)
+    td = random_steps(env, 4)
+    before, q_before = td["pixels"], env.state.q.clone()
+    mask = torch.tensor([True, False, False, True, False, False])
+    # what the env emits (TorchRL's reset then takes the other envs' entries from the tensordict it was given)
+    after = env._reset(TensorDict(_reset=mask[:, None], batch_size=[6]))["pixels"]
+    keep = ~mask
+    assert torch.equal(after[keep], before[keep])
+    assert torch.equal(env.state.q[keep], q_before[keep])
+    fresh = env.pixel_obs.render(env.state)  # every env's image of its current state
+    stack = env.pixel_obs.frame_stack
+    assert torch.equal(after[mask], fresh[mask].repeat(1, stack, 1, 1))  # a restarted stack: copies of frame 1
+    assert torch.equal(after[keep][:, -fresh.shape[1]:], fresh[keep])
+    assert not torch.equal(after[mask], before[mask])
+    # through TorchRL's reset, as a collector calls it
+    assert torch.equal(env.reset(td.set("_reset", mask[:, None]))["pixels"][keep], before[keep])
+
+
+def test_native_autoreset_restarts_the_finished_envs_stacks():
+    env = envs.make("inverted_pendulum_pixels", 4, native_autoreset=True, episode_length=3, **SMALL)
+    td = random_steps(env, 2)
+    out = env.step(td.set("action", torch.zeros(4, 1)))["next"]
+    assert out["done"].all()
+    frames = out["pixels"]
+    assert torch.equal(frames[:, 0], frames[:, 1])  # every env restarted: its stack holds its first frame twice
+    assert torch.equal(frames[:, 1], env.pixel_obs.render(env.state)[:, 0])
+
+
+def test_bad_camera_and_options_give_clear_errors():
+    with pytest.raises(ValueError, match=r"Reacher: bad camera 'nope'.*no camera named 'nope'"):
+        envs.make("reacher", 2, from_pixels=True, cameras="nope")
+    with pytest.raises(ValueError, match="out of range"):
+        envs.make("reacher", 2, from_pixels=True, cameras=3)
+    with pytest.raises(ValueError, match="pixel_kind must be one of"):
+        envs.make("reacher", 2, from_pixels=True, pixel_kind="segmentation")
+    with pytest.raises(ValueError, match="pixel_state must be one of"):
+        envs.make("reacher", 2, from_pixels=True, pixel_state="some")
+
+
+def test_pixel_networks():
+    cfg = OmegaConf.create({"hidden": [16], "activation": "silu", "cnn": {"channels": [4, 8], "kernels": [3, 3],
+                                                                          "strides": [2, 2], "features": 8}})
+    for name in ("reacher_pixels", "inverted_pendulum_pixels"):
+        env = envs.make(name, 3, **SMALL)
+        td = env.rollout(2, break_when_any_done=False)  # (B, T) leading dims, as PPO's GAE sees them
+        actor, critic = make_actor(env, cfg, "cpu"), make_value(env, cfg, "cpu", with_action=False)
+        assert "pixels" in actor.in_keys and "observation" in actor.in_keys
+        out = critic(actor(td.clone()))
+        assert out["action"].shape == (3, 2, env.action_spec.shape[-1]) and out["state_value"].shape == (3, 2, 1)
+        q = make_value(env, cfg, "cpu", with_action=True)(td.clone())["state_action_value"]
+        assert q.shape == (3, 2, 1)
+        # the image matters: the value changes when the pixels do
+        blank = td.clone().set("pixels", torch.zeros_like(td["pixels"]))
+        assert not torch.allclose(critic(blank)["state_value"], out["state_value"])
