@@ -100,9 +100,26 @@ def obs_norm(env: TransformedEnv) -> RunningNorm:
 
 
 # --------------------------------------------------------------------------------------------------------- networks
-def mlp(in_features: int, out_features: int, cfg_net: DictConfig, device) -> MLP:
-    return MLP(in_features=in_features, out_features=out_features, num_cells=list(cfg_net.hidden),
-               activation_class=ACTIVATIONS[cfg_net.activation], device=device)
+def mlp(in_features: int, out_features: int, cfg_net: DictConfig, device) -> nn.Module:
+    """The MLP of ``cfg_net`` (``hidden`` sizes, ``activation``); with ``cfg_net.bf16``, its matrix products in
+    bfloat16 (:class:`Bfloat16Matmuls`)."""
+    net = MLP(in_features=in_features, out_features=out_features, num_cells=list(cfg_net.hidden),
+              activation_class=ACTIVATIONS[cfg_net.activation], device=device)
+    return Bfloat16Matmuls(net) if cfg_net.get("bf16", False) else net
+
+
+class Bfloat16Matmuls(nn.Module):
+    """``net`` under ``torch.autocast`` to bfloat16, its output back in float32: the matrix products run at
+    bfloat16's rate (CPUs with AVX512-BF16 or AMX, GPUs) with float32 accumulation, while everything downstream (the
+    losses, log-probabilities, PPO's ratios) stays float32."""
+
+    def __init__(self, net: nn.Module):
+        super().__init__()
+        self.net = net
+
+    def forward(self, *inputs: torch.Tensor) -> torch.Tensor:
+        with torch.autocast(inputs[0].device.type, dtype=torch.bfloat16):
+            return self.net(*inputs).float()
 
 
 #: The pixel networks' encoder when ``cfg_net.cnn`` leaves a key out: conv layers (output channels, kernel,

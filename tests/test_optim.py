@@ -1,4 +1,5 @@
-"""The PPO recipe's optimiser and learning-rate schedule options (``torchsim.algos.optim``)."""
+"""The PPO recipe's large-batch options: optimiser and learning-rate schedule (``torchsim.algos.optim``), and
+bfloat16 matrix products (``algos.common.Bfloat16Matmuls``)."""
 
 import math
 
@@ -6,6 +7,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
+from torchsim.algos.common import Bfloat16Matmuls, mlp
 from torchsim.algos.optim import make_optimizer, make_schedule
 
 
@@ -68,3 +70,24 @@ def test_bad_options_name_the_key():
         make_schedule(optim, _algo(lr_decay="step"), 10, 1)
     with pytest.raises(ValueError, match="budget.env_steps"):
         make_schedule(optim, _algo(anneal_lr=True), None, 1)
+
+
+def test_bf16_network_matches_float32_to_bfloat16_precision():
+    """The same weights, float32 and bfloat16 matrix products: outputs and gradients in float32, apart by about
+    bfloat16's relative precision (2^-8) times the sizes involved, not more."""
+    torch.manual_seed(0)
+    cfg = OmegaConf.create({"hidden": [256, 256], "activation": "silu", "bf16": True})
+    net = mlp(27, 1, cfg, "cpu")
+    assert isinstance(net, Bfloat16Matmuls)
+    x = torch.randn(640, 27)
+    low, full = net(x), net.net(x)
+    assert low.dtype == torch.float32
+    scale = full.abs().max()
+    assert 0 < (low - full).abs().max() < 0.05 * scale
+    low.sum().backward()
+    grads = [p.grad.clone() for p in net.parameters()]
+    net.zero_grad()
+    full.sum().backward()
+    for g, g_full in zip(grads, (p.grad for p in net.parameters())):
+        assert g.dtype == torch.float32
+        assert (g - g_full).norm() < 0.05 * g_full.norm()
