@@ -9,12 +9,16 @@
 4. learner: ``PPO.update`` on one collected batch (GAE, then epochs x minibatches of Adam steps), samples/s;
 5. whole loop: collector and learner in turn, as ``torchsim.train`` runs them.
 
+``--learner-variant "key=value ..."`` also times ``PPO.update`` of a second PPO built with those overrides on the
+same collected batch, alternating with the first (e.g. ``"algo.value_net.bf16=true algo.policy_net.bf16=true"``).
+
 Hydra-style ``key=value`` overrides select the config (the same composition as ``python -m torchsim.train``); the
 compile it asks for happens before timing. Each figure is the median of ``--repeats`` timings.
 """
 
 import argparse
 import logging
+import statistics
 
 import torch
 from hydra import compose, initialize_config_dir
@@ -28,6 +32,7 @@ def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("overrides", nargs="*", help="config overrides, as for python -m torchsim.train")
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--learner-variant", default=None, help="overrides of a second learner, timed beside the first")
     args = p.parse_args()
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose(config_name="config", overrides=args.overrides)
@@ -71,11 +76,32 @@ def main():
         ppo.update(next(batches), lambda *args: None)
 
     rows["whole loop (collector + learner)"] = rate(iteration)
+    if args.learner_variant:
+        rows[f"learner, {args.learner_variant}"] = variant_rate(args, data, frames, ppo)
     engine_rate = rows["engine alone (env.stepper)"]
     print("\n| stage | env-steps/s | of engine alone |\n|---|---|---|")
     for name, rate in rows.items():
         print(f"| {name} | {rate:,.0f} | {rate / engine_rate:.2f} |")
     ppo.collector.shutdown()
+
+
+def variant_rate(args, data, frames: int, ppo: PPO) -> float:
+    """Samples/s of ``PPO.update`` for a PPO built with ``args.learner_variant`` on top of ``args.overrides``,
+    alternating repeat by repeat with ``ppo``'s (printed) on the same batch ``data``."""
+    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
+        cfg = compose(config_name="config", overrides=[*args.overrides, *args.learner_variant.split()])
+    other = PPO(cfg)
+    other.update(data.clone(), lambda *a: None)  # compiles its loss
+    rates = {"first": [], "variant": []}
+    for _ in range(args.repeats):
+        for name, learner in (("first", ppo), ("variant", other)):
+            rates[name].append(median_rate(lambda: learner.update(data.clone(), lambda *a: None), frames, 1,
+                                           min_seconds=0))
+    first, variant = (statistics.median(rates[k]) for k in ("first", "variant"))
+    print(f"learner side by side (samples/s, medians of {args.repeats}): as configured {first:,.0f}, "
+          f"{args.learner_variant} {variant:,.0f}")
+    other.collector.shutdown()
+    return statistics.median(rates["variant"])
 
 
 if __name__ == "__main__":
