@@ -18,12 +18,12 @@ from omegaconf import DictConfig
 
 import torchsim.algos
 import torchsim.progress
-from torchsim.algos import ppo, sac
+from torchsim.algos import apg, ppo, sac
 from torchsim.algos.common import Run, TrainingDiverged
 from torchsim.algos.distributed import Ranks
 
 CONFIG_DIR = str(pathlib.Path(torchsim.algos.__file__).parent / "configs")
-RECIPES = {"ppo": ppo.train, "sac": sac.train}
+RECIPES = {"ppo": ppo.train, "sac": sac.train, "apg": apg.train}
 
 
 def run(cfg: DictConfig, out_dir) -> Run:
