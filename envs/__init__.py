@@ -8,6 +8,7 @@ import builtins
 from torchsim.envs.base import ASSETS_DIR, TorchsimEnv, asset_path
 from torchsim.envs.locomotion import Ant, HalfCheetah, Hopper, Humanoid, Walker2d
 from torchsim.envs.manipulation import Pusher, Reacher
+from torchsim.envs.nav import PointNav
 from torchsim.envs.pendulums import InvertedDoublePendulum, InvertedPendulum
 from torchsim.envs.pixels import pendulum_strip
 from torchsim.envs.targets import Fetch, Grasp
@@ -36,6 +37,10 @@ PIXEL_ENVS = {
         render_compile=True)),
 }
 
+#: Navigation tasks (``torchsim.envs.nav``): kinematic agents in procedural layouts, not physics models, so not in
+#: :func:`list` either; :func:`make` builds them (``kwargs`` to the class).
+NAV_ENVS = {"pointnav": PointNav}
+
 
 def list() -> builtins.list[str]:  # noqa: A001 - the public name asked for: torchsim.envs.list()
     """Names accepted by :func:`make`."""
@@ -46,12 +51,15 @@ def make(name: str, num_envs: int = 1, device="cpu", **kwargs) -> TorchsimEnv:
     """Build env ``name`` with ``batch_size=(num_envs,)`` on ``device``; ``kwargs`` go to the env class
     (``dtype``, ``episode_length``, ``native_autoreset``, ``method``, ``substeps``, ``stagger_episodes``, ``stepper``,
     and the pixel options ``from_pixels``, ``cameras``, ``pixel_size``, ``pixel_kind``, ``pixel_state``,
-    ``frame_stack``, ``render_compile``: :class:`TorchsimEnv`). ``name`` may also be one of :data:`PIXEL_ENVS`."""
+    ``frame_stack``, ``render_compile``: :class:`TorchsimEnv`). ``name`` may also be one of :data:`PIXEL_ENVS`
+    or :data:`NAV_ENVS`."""
+    if name in NAV_ENVS:
+        return NAV_ENVS[name](num_envs, device=device, **kwargs)
     if name in PIXEL_ENVS:
         task, defaults = PIXEL_ENVS[name]
         return ENVS[task](num_envs, device=device, **{**defaults, **kwargs})
     if name not in ENVS:
-        raise ValueError(f"unknown env {name!r}; available: {', '.join(ENVS)}, {', '.join(PIXEL_ENVS)}")
+        raise ValueError(f"unknown env {name!r}; available: {', '.join([*ENVS, *PIXEL_ENVS, *NAV_ENVS])}")
     return ENVS[name](num_envs, device=device, **kwargs)
 
 
