@@ -51,8 +51,8 @@ def make(name: str, num_envs: int = 1, device="cpu", **kwargs) -> TorchsimEnv:
     """Build env ``name`` with ``batch_size=(num_envs,)`` on ``device``; ``kwargs`` go to the env class
     (``dtype``, ``episode_length``, ``native_autoreset``, ``method``, ``substeps``, ``stagger_episodes``, ``stepper``,
     and the pixel options ``from_pixels``, ``cameras``, ``pixel_size``, ``pixel_kind``, ``pixel_state``,
-    ``frame_stack``, ``render_compile``: :class:`TorchsimEnv`). ``name`` may also be one of :data:`PIXEL_ENVS`
-    or :data:`NAV_ENVS`."""
+    ``frame_stack``, ``render_compile``, ``pixel_supersample``: :class:`TorchsimEnv`). ``name`` may also be one of
+    :data:`PIXEL_ENVS` or :data:`NAV_ENVS`."""
     if name in NAV_ENVS:
         return NAV_ENVS[name](num_envs, device=device, **kwargs)
     if name in PIXEL_ENVS:

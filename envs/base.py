@@ -85,6 +85,7 @@ class TorchsimEnv(EnvBase):
             (float, metres); default: the task's. pixel_state: what ``observation`` holds beside the images:
             ``"full"`` (the state vector), ``"proprio"`` (the task's proprioceptive part) or ``"none"``.
             frame_stack: frames stacked on the channel axis. render_compile: ``render(..., compile=True)``.
+            pixel_supersample: render ``k x k`` rays per pixel and average them (anti-aliased edges).
     """
 
     #: The model asset in ``envs/assets``: MJCF (``.xml``) or URDF (``.urdf``, translated by ``urdf_to_mjcf``).
@@ -115,7 +116,8 @@ class TorchsimEnv(EnvBase):
                  native_autoreset: bool = False, method: str | None = None, substeps: int | None = None,
                  stagger_episodes: bool = False, stepper: "str | torchsim.Stepper" = "eager",
                  from_pixels: bool = False, cameras=None, pixel_size=48, pixel_kind: str | None = None,
-                 pixel_state: str = "full", frame_stack: int = 1, render_compile: bool = False):
+                 pixel_state: str = "full", frame_stack: int = 1, render_compile: bool = False,
+                 pixel_supersample: int = 1):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs}")
         super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
@@ -147,7 +149,7 @@ class TorchsimEnv(EnvBase):
         self.pixel_obs = None
         if from_pixels:
             self.pixel_obs = PixelObservation(self, cameras, pixel_size, pixel_kind, pixel_state, frame_stack,
-                                              render_compile)
+                                              render_compile, pixel_supersample)
         self._make_specs(dtype)
         self.state = self._initial_state()
         self.task = self._sample_task(self.state)

@@ -84,7 +84,8 @@ PIXEL_TASKS = {
 class PixelObservation:
     """The image half of a pixel env's observation: the scene, the cameras, the image buffer and its spec."""
 
-    def __init__(self, env, cameras=None, size=48, kind=None, state="full", frame_stack=1, compile=False):
+    def __init__(self, env, cameras=None, size=48, kind=None, state="full", frame_stack=1, compile=False,
+                 supersample=1):
         task = PIXEL_TASKS.get(type(env).__name__, PixelTask(_overview))
         name = type(env).__name__
         self.scene = Scene.build(env.mj_model, env.sys, skip_unsupported=True)
@@ -105,9 +106,10 @@ class PixelObservation:
         self.state, self.shading, self.compile = state, task.shading, bool(compile)
         self.proprio = None if task.proprio is None else torch.tensor(task.proprio, device=env.device)
         self.height, self.width = (int(size), int(size)) if isinstance(size, int) else map(int, size)
-        self.frame_stack = int(frame_stack)
-        if self.frame_stack < 1 or min(self.height, self.width) < 1:
-            raise ValueError(f"{name}: frame_stack and pixel_size must be positive, got {frame_stack}, {size}")
+        self.frame_stack, self.supersample = int(frame_stack), int(supersample)
+        if min(self.frame_stack, self.supersample, self.height, self.width) < 1:
+            raise ValueError(f"{name}: frame_stack, pixel_supersample and pixel_size must be positive, got "
+                             f"{frame_stack}, {supersample}, {size}")
         self.channels = self.camera.num * (3 if self.kind == "rgb" else 1)
         self.batch, self.device, self.dtype = env.batch_size, env.device, env.sys.dtype
         self.frames = None  # (B, frame_stack x channels, H, W), set by ``update``
@@ -125,13 +127,21 @@ class PixelObservation:
 
     def render(self, state) -> torch.Tensor:
         """One frame ``(n, channels, H, W)`` of the ``n`` envs of ``state``."""
-        images = render(self.scene, state, self.camera, self.height, self.width, segmentation=False,
+        k = self.supersample
+        images = render(self.scene, state, self.camera, k * self.height, k * self.width, segmentation=False,
                         rgb=self.kind == "rgb", shading=self.shading, compile=self.compile)
         n = state.x_pos.shape[0]
         if self.kind == "depth":
-            return images.depth.reshape(n, self.channels, self.height, self.width)
-        rgb = images.rgb.reshape(n, -1, self.height, self.width, 3).permute(0, 1, 4, 2, 3)
-        return (rgb * 255.0).round().to(torch.uint8).reshape(n, self.channels, self.height, self.width)
+            return self._pool(images.depth.reshape(n, self.channels, k * self.height, k * self.width))
+        rgb = images.rgb.reshape(n, -1, k * self.height, k * self.width, 3).permute(0, 1, 4, 2, 3)
+        rgb = self._pool(rgb.reshape(n, self.channels, k * self.height, k * self.width))
+        return (rgb * 255.0).round().to(torch.uint8)
+
+    def _pool(self, images: torch.Tensor) -> torch.Tensor:
+        """The mean of each pixel's ``supersample x supersample`` sub-pixels: a geom covering part of a pixel shows
+        as a blend (in depth, a blend of depths), so its edge moves smoothly, not a whole pixel at a time."""
+        k = self.supersample
+        return images if k == 1 else torch.nn.functional.avg_pool2d(images, k)
 
     def update(self, state, rows: torch.Tensor | None = None, restart: torch.Tensor | None = None) -> None:
         """Render ``state`` and store the frames, out of place (emitted images are never written again).

@@ -66,6 +66,20 @@ def test_options_shapes_and_specs():
         envs.make("ant", 2, from_pixels=True, pixel_state="proprio")
 
 
+def test_supersampled_pixels_average_a_finer_render():
+    """``pixel_supersample=k``: each pixel is the mean of a k-times finer render's k x k block, so a pole edge that
+    crosses a pixel shows as a blend of the two colours instead of jumping a whole pixel."""
+    env = envs.make("inverted_pendulum_pixels", 3, pixel_kind="rgb", pixel_supersample=3, render_compile=False,
+                    pixel_size=16)
+    td = random_steps(env, 2)
+    fine = render(env.pixel_obs.scene, env.state, env.pixel_obs.camera, 48, 48, rgb=True).rgb  # (B, 48, 48, 3)
+    pooled = torch.nn.functional.avg_pool2d(fine.permute(0, 3, 1, 2), 3)
+    assert torch.equal(td["pixels"][:, 3:], (pooled * 255).round().to(torch.uint8))  # the newest frame
+    coarse = render(env.pixel_obs.scene, env.state, env.pixel_obs.camera, 16, 16, rgb=True).rgb
+    distinct = lambda images: len(torch.unique(images.reshape(-1, 3), dim=0))  # noqa: E731
+    assert distinct(pooled) > distinct(coarse)  # blended edge colours
+
+
 def test_pixels_equal_a_direct_render_of_the_state():
     env = envs.make("reacher_pixels", 5, render_compile=False)  # the training size, 48x48
     td = random_steps(env, 3)
