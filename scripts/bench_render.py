@@ -101,7 +101,8 @@ def main():
     mj_fps = None if args.no_mujoco else mujoco_frames_per_second(model, poses, eye, target, args)
     kind = "RGB" if args.rgb else "depth"
     print(f"{args.env}, {size}x{size} {kind}, torch threads {torch.get_num_threads()}, device {args.device}, "
-          f"compile={args.compile}, tile={args.tile}, max_tests={args.max_tests}, MUJOCO_GL={os.environ.get('MUJOCO_GL')}")
+          f"compile={args.compile}, tile={args.tile}, max_tests={args.max_tests}, "
+          f"MUJOCO_GL={os.environ.get('MUJOCO_GL')}")
     if mj_fps:
         print(f"mujoco.Renderer: {mj_fps:.0f} frames/s (one frame at a time, {args.mujoco_frames} poses)")
     print("| batch | torchsim ms/batch | torchsim frames/s | x MuJoCo |")
