@@ -24,10 +24,8 @@ import torch  # noqa: E402
 
 import torchsim  # noqa: E402
 import torchsim.envs  # noqa: E402
+from _views import VIEW  # noqa: E402
 from torchsim.render import Camera, Scene, render  # noqa: E402
-
-VIEW = {"ant": ((2.5, -2.5, 2.0), (0.0, 0.0, 0.4)), "humanoid": ((3.0, -3.0, 2.0), (0.0, 0.0, 1.0)),
-        "reacher": ((0.3, -0.35, 0.35), (0.0, 0.0, 0.0)), "grasp": ((12.0, -12.0, 10.0), (0.0, 0.0, 3.0))}
 
 
 def median_time(fn, repeats):

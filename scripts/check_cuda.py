@@ -32,6 +32,7 @@ import torchsim
 import torchsim.envs
 from torchsim.envs.base import ASSETS_DIR
 from torchsim.io_urdf import urdf_to_mjcf
+from _views import VIEW
 
 
 def parse_args():
@@ -163,8 +164,7 @@ def check_render(args, device: str) -> tuple[list[str], bool]:
 
     rows = ["| scene | batch | depth equal (1e-4 rel) | segmentation equal | ok |", "|---|---:|---:|---:|---|"]
     all_ok = True
-    views = {"ant": ((2.5, -2.5, 2.0), (0.0, 0.0, 0.4)), "reacher": ((0.3, -0.35, 0.35), (0.0, 0.0, 0.0)),
-             "grasp": ((12.0, -12.0, 10.0), (0.0, 0.0, 3.0))}
+    views = {name: VIEW[name] for name in ("ant", "reacher", "grasp")}
     rng = np.random.default_rng(1)
     for name, (eye, target) in views.items():
         xml = torchsim.envs.asset_path(f"{name}.xml").read_text()
