@@ -8,8 +8,8 @@ return of the unroll, differentiated through every physics substep, the observat
 The state is carried detached from one unroll to the next (truncated back-propagation); envs that end inside an
 unroll restart from fresh states, which carry no gradient. Gradients are clipped to ``max_grad_norm``.
 
-The rollout is written here against the task's pieces (``_ctrl``, ``_observation``, ``_reward``, ``_terminated``,
-``_next_task``, ``_initial_state``), not through ``env.step``: TorchRL's step path updates the normaliser and the
+The rollout is written here against the env's pieces (``_ctrl``, ``_advance``: the physics, reward, termination
+and task of one step; ``_restart``, ``_observation``), not through ``env.step``: TorchRL's step path updates the normaliser and the
 episode counters in place and returns a TensorDict per step, which autograd need not see, and the task functions
 are plain differentiable torch. Those functions are the env's own, so the loss is the return of the same task.
 
@@ -23,7 +23,6 @@ from torch import nn
 
 from torchsim.algos.common import Run, make_actor, make_env, make_eval_env, obs_norm
 from torchsim.algos.distributed import Ranks
-from torchsim.envs.base import select_state
 
 
 def policy_net(actor) -> nn.Module:
@@ -64,14 +63,8 @@ class Rollout:
             b.state, b.task = state, task  # the task functions read the current state and task from the env
             action = self.action(net, obs, update_norm)
             ctrl = b._ctrl(action)
-            before = state
-            for _ in range(b.frame_skip):
-                state = b.stepper(state, ctrl)
-            reward = torch.where(state.diverged, 0.0, b._reward(before, state, ctrl))
-            terminated = b._terminated(state) | state.diverged
-            task = b._next_task(state, task)
-            steps = steps + 1
-            done = terminated | (steps >= b.episode_length)
+            state, task, reward, terminated, truncated, steps = b._advance(state, task, ctrl, steps)
+            done = terminated | truncated
             total = total + self.gamma ** t * reward
             self.episode_return = self.episode_return + reward.detach()
             rewards.append(reward.detach())
@@ -80,11 +73,7 @@ class Rollout:
             self.episode_return = torch.where(done, 0.0, self.episode_return)
             # finished envs restart: their fresh states and tasks carry no gradient
             if bool(done.any()):  # one host sync per step; most steps end no episode
-                fresh = b._initial_state()
-                state = select_state(done, fresh, state)
-                task = torch.where(done[:, None], b._sample_task(fresh), task)
-                steps = torch.where(done, 0, steps)
-                ctrl = torch.where(done[:, None], 0.0, ctrl)  # a fresh episode's first observation sees none
+                state, task, steps, ctrl = b._restart(done, state, task, steps, ctrl)
             b.state, b.task = state, task
             obs = b._observation(state, ctrl)
         # stop-gradient between unrolls: the next one starts from these values, detached

@@ -343,6 +343,31 @@ class TorchsimEnv(EnvBase):
         no = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         return self._output(self.state, self._zero_ctrl(), done=no, terminated=no.clone(), truncated=no.clone())
 
+    def _advance(self, state: State, task: torch.Tensor, ctrl: torch.Tensor, steps: torch.Tensor,
+                 bad: torch.Tensor | None = None):
+        """One env step from ``state``, ``task`` and the episodes' step counts ``steps (B,)`` under ``ctrl``, as plain
+        tensors, writing nothing to the env (so it is differentiable: ``torchsim.algos.apg`` unrolls it): the new
+        state and task, the reward (0 where the physics diverged), terminated (the task's, or diverged; ``bad
+        (B,)`` marks envs to treat as diverged), truncated and the new step counts."""
+        before = state
+        for _ in range(self.frame_skip):
+            state = self.stepper(state, ctrl)
+        if bad is not None:
+            state = state._replace(diverged=state.diverged | bad)
+        reward = torch.where(state.diverged, 0.0, self._reward(before, state, ctrl))
+        terminated = self._terminated(state) | state.diverged
+        task = self._next_task(state, task)
+        steps = steps + 1
+        return state, task, reward, terminated, steps >= self.episode_length, steps
+
+    def _restart(self, done: torch.Tensor, state: State, task: torch.Tensor, steps: torch.Tensor,
+                 ctrl: torch.Tensor):
+        """The envs of ``done (B,)`` at fresh start states and tasks, step count 0 and no control (what their first
+        observation sees); the others as they are."""
+        fresh = self._initial_state()
+        return (select_state(done, fresh, state), torch.where(done[:, None], self._sample_task(fresh), task),
+                torch.where(done, 0, steps), torch.where(done[:, None], 0.0, ctrl))
+
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
         self._check_action(action)
@@ -351,23 +376,12 @@ class TorchsimEnv(EnvBase):
         # the env runs with zero control and is flagged as diverged, so it ends and resets like one.
         bad_action = ~torch.isfinite(ctrl).all(-1)
         ctrl = torch.where(bad_action[:, None], 0.0, ctrl)
-        before = self.state
-        state = before
-        for _ in range(self.frame_skip):
-            state = self.stepper(state, ctrl)
-        state = state._replace(diverged=state.diverged | bad_action)
-        reward = torch.where(state.diverged, 0.0, self._reward(before, state, ctrl))
-        terminated = self._terminated(state) | state.diverged
-        task = self._next_task(state, self.task)
-        self.step_count.add_(1)
-        truncated = self.step_count >= self.episode_length
+        state, task, reward, terminated, truncated, steps = self._advance(self.state, self.task, ctrl,
+                                                                          self.step_count, bad_action)
         done = terminated | truncated
         if self.__dict__.get("_torchrl_native_autoreset", False):
-            fresh = self._initial_state()
-            state = select_state(done, fresh, state)
-            task = torch.where(done[:, None], self._sample_task(fresh), task)
-            self.step_count.copy_(torch.where(done, 0, self.step_count))
-            ctrl = torch.where(done[:, None], 0.0, ctrl)
+            state, task, steps, ctrl = self._restart(done, state, task, steps, ctrl)
+        self.step_count.copy_(steps)
         self.state, self.task = state, task
         if self.pixel_obs is not None:
             native = self.__dict__.get("_torchrl_native_autoreset", False)
