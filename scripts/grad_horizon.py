@@ -2,7 +2,8 @@
 recording and back-propagating a rollout (time and memory), with and without checkpointing the steps.
 
     OMP_NUM_THREADS=1 python scripts/grad_horizon.py horizon            # -> docs/gradients_horizon.{csv,png}
-    OMP_NUM_THREADS=1 python scripts/grad_horizon.py speed --batch 256 --steps 100
+    OMP_NUM_THREADS=1 python scripts/grad_horizon.py speed --batch 256 --steps 100 [--stepper compiled]
+    OMP_NUM_THREADS=1 python scripts/grad_horizon.py compiled --batch 256 --steps 20
     python scripts/grad_horizon.py speed --device cuda --batch 256 --steps 100
 
 ``horizon``: ``--envs`` Ant starts (``q0`` plus U(-0.1, 0.1) on every coordinate, N(0, 0.1) velocities) under
@@ -11,16 +12,20 @@ uniform random controls over the ctrl range, float64, eager ``torchsim.step``. F
 initial coordinates, every control of the rollout and the body masses; the chart shows, per input, the median and
 the largest norm over the envs against ``H``.
 
-``speed``: one rollout of ``--steps`` steps at ``--batch`` envs, float32, eager: (a) forward without autograd, (b)
+``speed``: one rollout of ``--steps`` steps at ``--batch`` envs, float32, eager (``--stepper compiled``: through
+a ``torchsim.Stepper``, compiled, after an untimed warm-up of each kind of step): (a) forward without autograd, (b)
 forward recording the graph plus ``backward`` of the summed final state, with respect to the controls and the
 initial velocities, (c) the same with every step under ``torch.utils.checkpoint`` (``use_reentrant=False``): only
 the states between steps are kept, and each step's intermediates are recomputed during ``backward``. Reports steps/s
 (env steps, i.e. batch x steps per second) and the memory the graph holds: the bytes autograd saves for backward
 (``saved_tensors_hooks``, counted once per storage), per env per step, and on CUDA the peak allocated memory.
+
+``compiled``: whether the compiled step's gradients are the eager step's (:func:`compiled_agreement`).
 """
 
 import argparse
 import csv
+import functools
 import os
 import resource
 import time
@@ -134,8 +139,11 @@ def speed(args):
         if device.type == "cuda":
             torch.cuda.synchronize()
 
+    # compiled: a torchsim.Stepper, whose steps that autograd records run compiled with their backward
+    step = torchsim.Stepper(sys) if args.stepper == "compiled" else functools.partial(torchsim.step, sys)
+
     def one_step(x_pos, x_quat, xd_vel, xd_ang, q, qd, c):
-        s = torchsim.step(sys, torchsim.State(x_pos, x_quat, xd_vel, xd_ang, q, qd, diverged), c)
+        s = step(torchsim.State(x_pos, x_quat, xd_vel, xd_ang, q, qd, diverged), c)
         return s.x_pos, s.x_quat, s.xd_vel, s.xd_ang, s.q, s.qd
 
     def run(mode):
@@ -179,26 +187,62 @@ def speed(args):
 
     diverged = None
     print(f"Ant, batch {args.batch}, {args.steps} steps of {sys.substeps} substeps, float32, {device}, "
-          f"{torch.get_num_threads()} threads")
-    for mode in ("forward",) + tuple(args.modes):  # the first forward warms up
+          f"{torch.get_num_threads()} threads, {step if args.stepper == 'compiled' else 'eager torchsim.step'}")
+    warm_up = ("forward", "backward") if args.stepper == "compiled" else ("forward",)  # compiles, untimed
+    for mode in warm_up + tuple(args.modes):
         run(mode)
     print(f"max RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20:.2f} GiB")
 
 
+def compiled_agreement(args):
+    """Gradients of ``sum(q_H) + sum(qd_H)`` with respect to every control of an H-step rollout at ``--batch`` envs,
+    float32, through a ``torchsim.Stepper`` (compiled forward and backward) and through ``torchsim.step``, against
+    the float32 step's own distance from float64: the relative error over the batch (max |a - b| / max |b|), and
+    the median env's (||a - b|| / ||b|| per env)."""
+    sys32, sys64 = (torchsim.load_mjcf(ANT, dtype=dtype) for dtype in (torch.float32, torch.float64))
+    gen = torch.Generator().manual_seed(0)
+    q0, qd0 = starts(sys32, args.batch, gen)
+    ctrl = random_ctrl(sys32, args.steps, args.batch, gen)
+    steps = {"compiled": torchsim.Stepper(sys32), "eager32": functools.partial(torchsim.step, sys32),
+             "eager64": functools.partial(torchsim.step, sys64)}
+
+    def ctrl_grad(name, horizon):
+        dtype = torch.float64 if name == "eager64" else torch.float32
+        c = ctrl[:horizon].to(dtype).requires_grad_()
+        state = torchsim.init(sys64 if name == "eager64" else sys32, q0.to(dtype), qd0.to(dtype))
+        for t in range(horizon):
+            state = steps[name](state, c[t])
+        return torch.autograd.grad(state.q.sum() + state.qd.sum(), c)[0].double().transpose(0, 1).flatten(1)
+
+    def errors(got, want):
+        per_env = (got - want).norm(dim=1) / want.norm(dim=1)
+        return f"{((got - want).abs().max() / want.abs().max()).item():.1e} / {per_env.median().item():.1e}"
+
+    print(f"Ant, batch {args.batch}; relative error of d J / d controls, over the batch / the median env")
+    for horizon in (h for h in HORIZONS if h <= args.steps):
+        grads = {name: ctrl_grad(name, horizon) for name in steps}
+        print(f"H = {horizon:3d}: compiled vs eager (float32) {errors(grads['compiled'], grads['eager32'])}; "
+              f"eager float32 vs float64 {errors(grads['eager32'], grads['eager64'])}", flush=True)
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("what", choices=("horizon", "speed", "replot"))
+    parser.add_argument("what", choices=("horizon", "speed", "compiled", "replot"))
     parser.add_argument("--envs", type=int, default=8)
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--modes", nargs="+", default=["forward", "backward", "checkpoint"],
                         choices=["forward", "backward", "checkpoint"])
+    parser.add_argument("--stepper", choices=["eager", "compiled"], default="eager",
+                        help="speed: torchsim.step, or a torchsim.Stepper (compiled forward and backward)")
     args = parser.parse_args()
     if args.what == "horizon":
         horizon(args)
     elif args.what == "speed":
         speed(args)
+    elif args.what == "compiled":
+        compiled_agreement(args)
     else:
         plot(os.path.join(REPO, "docs", "gradients_horizon.csv"))
 

@@ -18,7 +18,8 @@
 - ``calls``: the substep and the step's end compiled separately, called from a Python loop.
 
 ``loop`` and ``calls`` step CPU batches in parts of ``part_size`` envs on ``threads`` threads (``torchsim.parts``).
-A step that autograd records (an input requires grad, grad mode on) runs the reference step, with a warning.
+A step that autograd records (an input requires grad, grad mode on) runs as ``calls`` on the whole batch, whatever
+the strategy: its compiled functions have a backward.
 Steppers hold no process-wide state: two Systems with different strategies step side by side.
 """
 
@@ -134,8 +135,7 @@ class Stepper:
             return pipeline.step(sys, state, ctrl)
         pipeline.check(sys, "ctrl", ctrl, sys.nu, state.x_pos.shape[0])
         if pipeline.records_grad(sys, state, ctrl):
-            _warn_eager_for_grad()
-            return pipeline.run_substeps(sys, state, ctrl)
+            return self._recording_step(state, ctrl)
         if self.strategy in ("kernel", "rows"):
             try:
                 return self._kernel(state, ctrl) if self.strategy == "kernel" else self._rows_step(state, ctrl)
@@ -184,6 +184,16 @@ class Stepper:
         method = METHODS[self.sys.method]
         return functools.partial(pipeline.run_substeps, substep=self._compile(method.name, method.substep, True),
                                  finish_step=self._compile("finish", pipeline.finish, True))
+
+    def _recording_step(self, state: State, ctrl: torch.Tensor) -> State:
+        """A step autograd records: the ``calls`` strategy's compiled substep and step end, on the whole batch,
+        from a Python loop. The row graphs and the step kernel have no backward, and the ``loop`` strategy's
+        ``while_loop`` gave wrong gradients in torch 2.13; compiled functions do (AOTAutograd compiles a forward
+        that saves what the backward needs, and the backward): equal to the reference step's to rounding
+        (tests/test_gradients.py), compiled once per model on the first recording step."""
+        method = METHODS[self.sys.method]
+        return pipeline.run_substeps(self.sys, state, ctrl, substep=self._compile(method.name, method.substep),
+                                     finish_step=self._compile("finish", pipeline.finish))
 
     # -- kernel and rows
     def _fall_back(self, err: Exception) -> None:
@@ -278,13 +288,6 @@ class Stepper:
 def _step_terms(sys: System, bodies: Bodies, q: torch.Tensor, h: float):
     """The method's step terms, as one function to compile."""
     return METHODS[sys.method].step_terms(sys, bodies, q, h)
-
-
-@functools.cache
-def _warn_eager_for_grad() -> None:
-    warnings.warn("torchsim.Stepper: an input requires grad, so this step and later ones that record gradients run "
-                  "the reference step, not compiled (the compiled substep loop does not give correct gradients in "
-                  "torch 2.13)", stacklevel=3)
 
 
 def _batch_dynamic(batch_first, lanes_last) -> None:
