@@ -191,6 +191,13 @@ class Stepper:
         ``while_loop`` gave wrong gradients in torch 2.13; compiled functions do (AOTAutograd compiles a forward
         that saves what the backward needs, and the backward): equal to the reference step's to rounding
         (tests/test_gradients.py), compiled once per model on the first recording step."""
+        # Every float input made to require grad (constants as new leaves, whose gradients nobody reads): dynamo
+        # guards on which inputs require grad, and a rollout mixes patterns (its detached start, then states that
+        # depend on the controls), each of which would compile its own forward and backward (measured on APG's
+        # unroll: 10 compilations of ~50 s instead of 4).
+        state = State(*(x.detach().requires_grad_() if x.is_floating_point() and not x.requires_grad else x
+                        for x in state))
+        ctrl = ctrl if ctrl.requires_grad else ctrl.detach().requires_grad_()
         method = METHODS[self.sys.method]
         return pipeline.run_substeps(self.sys, state, ctrl, substep=self._compile(method.name, method.substep),
                                      finish_step=self._compile("finish", pipeline.finish))
