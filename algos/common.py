@@ -23,6 +23,7 @@ from torchrl.modules import MLP, NormalParamExtractor, ProbabilisticActor, TanhN
 from torchrl.record.loggers import get_logger
 
 import torchsim.envs
+from torchsim.algos import nav_policy
 from torchsim.algos.distributed import Ranks
 from torchsim.mujoco_stepper import MujocoStepper
 
@@ -62,20 +63,30 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     ``cfg.stagger_episodes``. The physics runs compiled (``torchsim.Stepper``, strategy ``auto``) if ``cfg.compile``,
     or in MuJoCo C if ``cfg.physics == "mujoco"`` (``torchsim.mujoco_stepper``: the same task code on MuJoCo's
     physics); ``like``: an env whose stepper (System and compiled step) this one shares, for any ``num_envs`` above
-    1."""
+    1. A navigation task (``torchsim.envs.NAV_ENVS``, no physics) has its depth normalised per pixel instead and
+    draws its episodes from the layouts of ``cfg.env.split`` if ``train``, else of ``cfg.env.eval_split``."""
     physics = cfg.get("physics", "torchsim")  # checkpoints from before the key ran on torchsim
     if physics not in ("torchsim", "mujoco"):
         raise ValueError(f"physics must be 'torchsim' or 'mujoco', got {physics!r}")
-    if like is not None:
+    nav = cfg.env.name in torchsim.envs.NAV_ENVS
+    if nav:
+        base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device,
+                                  episode_length=cfg.env.episode_length, num_layouts=cfg.env.num_layouts,
+                                  split=cfg.env.split if train else cfg.env.eval_split, seed=cfg.seed)
+    elif like is not None:
         stepper = like.base_env.stepper
     elif physics == "mujoco":
         probe = torchsim.envs.make(cfg.env.name, device=device)  # its System and MuJoCo model, in the env's dtype
         stepper = MujocoStepper(probe.base_sys, probe.mj_model)
     else:
         stepper = "auto" if cfg.compile else "eager"
-    base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length,
-                              stagger_episodes=train and cfg.stagger_episodes, stepper=stepper)
-    norm = RunningNorm(in_keys=["observation"], decay=cfg.obs_norm_decay, eps=1e-4, reduce_batch_dims=True)
+    if not nav:
+        base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device,
+                                  episode_length=cfg.env.episode_length,
+                                  stagger_episodes=train and cfg.stagger_episodes, stepper=stepper)
+    vectors = [k for k in ("observation", "privileged_state") if k in base.observation_spec.keys()]
+    norm = RunningNorm(in_keys=["depth"] if nav else vectors or ["observation"], decay=cfg.obs_norm_decay, eps=1e-4,
+                       reduce_batch_dims=True)
     transforms = [norm, RewardSum(), StepCounter()]
     if train:  # the losses learn from scaled_reward; reward (and episode_reward) stay the task's
         transforms.append(RewardScaling(0.0, cfg.algo.reward_scale, in_keys=["reward"], out_keys=["scaled_reward"]))
@@ -92,6 +103,8 @@ def make_eval_env(cfg: DictConfig, train_env: TransformedEnv) -> TransformedEnv:
         episodes = train_env.batch_size[0]
         log.info(f"evaluating {episodes} episodes (the training batch) on {train_env.device}: the compiled step "
                  f"serves one batch size there")
+    if nav_policy.is_nav_env(train_env):
+        return make_env(cfg, episodes, train_env.device)
     return make_env(cfg, episodes, train_env.device, like=train_env)
 
 
@@ -151,12 +164,42 @@ class PixelNet(nn.Module):
         self.head = mlp(cnn["features"] + vector_dim, out_features, cfg_net, device)
         self.post = post if post is not None else nn.Identity()
 
-    def forward(self, pixels: torch.Tensor, *vectors: torch.Tensor) -> torch.Tensor:
+    def features(self, pixels: torch.Tensor) -> torch.Tensor:
+        """The CNN's features of ``pixels (..., C, H, W)``: ``(..., cnn.features)``."""
         lead = pixels.shape[:-3]
         x = pixels.reshape(-1, *pixels.shape[-3:])
         x = x.float() / 255.0 if self.rgb else x.clamp(0.0, self.depth_max) / self.depth_max
-        z = self.project(self.conv(x)).reshape(*lead, -1)
-        return self.post(self.head(torch.cat((z, *vectors), -1)))
+        return self.project(self.conv(x)).reshape(*lead, -1)
+
+    def forward(self, pixels: torch.Tensor, *vectors: torch.Tensor) -> torch.Tensor:
+        return self.post(self.head(torch.cat((self.features(pixels), *vectors), -1)))
+
+
+class StateProbe(nn.Module):
+    """An auxiliary loss for a pixel policy trained in simulation: a linear read-out of the policy CNN's features,
+    regressed on the env's ``privileged_state`` (normalised). Why: the policy gradient alone is a weak, noisy signal
+    for learning to see; this one asks the policy's encoder directly for the state the images show (the pole's angle
+    and, from the stacked frames, its rate), which a supervised probe learns in seconds (scripts/pixel_probe.py)."""
+
+    def __init__(self, encoder: PixelNet, state_dim: int, device):
+        super().__init__()
+        self.encoder = encoder
+        self.readout = nn.Linear(encoder.project[0].out_features, state_dim, device=device)
+
+    def forward(self, pixels: torch.Tensor, state: torch.Tensor) -> torch.Tensor:
+        return (self.readout(self.encoder.features(pixels)) - state).square().mean()
+
+
+def make_state_probe(actor, env, coeff: float, device) -> StateProbe | None:
+    """The :class:`StateProbe` of ``actor``'s CNN if ``coeff`` > 0, else None; refused for an env without
+    ``privileged_state`` or a policy without a CNN."""
+    if not coeff:
+        return None
+    encoders = [m for m in actor.modules() if isinstance(m, PixelNet)]
+    if "privileged_state" not in env.observation_spec.keys() or not encoders:
+        raise ValueError("algo.state_probe_coeff needs a pixel env that emits privileged_state (an env option, "
+                         "pixel_privileged_state=True) and so a policy with a CNN")
+    return StateProbe(encoders[0], env.observation_spec["privileged_state"].shape[-1], device)
 
 
 def _inputs(env) -> tuple[list, int]:
@@ -167,7 +210,10 @@ def _inputs(env) -> tuple[list, int]:
 
 def make_actor(env, cfg_net: DictConfig, device) -> ProbabilisticActor:
     """Tanh-squashed Gaussian policy on ``observation``; its deterministic action is ``tanh(loc)``. An env with
-    ``pixels`` gets a :class:`PixelNet` on the images and ``observation`` (if it emits one)."""
+    ``pixels`` gets a :class:`PixelNet` on the images and ``observation`` (if it emits one); a navigation env a
+    categorical policy on depth and goal (``nav_policy.make_actor``)."""
+    if nav_policy.is_nav_env(env):
+        return nav_policy.make_actor(env, cfg_net, device, make_head=mlp)
     act_dim = env.action_spec.shape[-1]
     if "pixels" in env.observation_spec.keys():
         keys, dim = _inputs(env)
@@ -184,67 +230,89 @@ def make_actor(env, cfg_net: DictConfig, device) -> ProbabilisticActor:
 
 def make_value(env, cfg_net: DictConfig, device, with_action: bool) -> ValueOperator:
     """V(observation) or, ``with_action``, Q(observation, action) (torchrl's MLP concatenates its inputs); with
-    ``pixels``, a :class:`PixelNet` on the images and the vectors."""
+    ``pixels``, a :class:`PixelNet` on the images and the vectors, unless the env emits ``privileged_state``: then an
+    MLP on that (asymmetric actor-critic: in simulation the critic may read the state the policy has to see);
+    for a navigation env, ``nav_policy.make_value`` (V only)."""
+    if nav_policy.is_nav_env(env):
+        if with_action:
+            raise ValueError("navigation envs have discrete actions: train them with PPO (no Q-function)")
+        return nav_policy.make_value(env, cfg_net, device, make_head=mlp)
     act_dim = env.action_spec.shape[-1]
-    if "pixels" in env.observation_spec.keys():
+    spec = env.observation_spec
+    if "pixels" in spec.keys() and "privileged_state" not in spec.keys():
         keys, dim = _inputs(env)
         keys, dim = (keys + ["action"], dim + act_dim) if with_action else (keys, dim)
-        net = PixelNet(env.observation_spec["pixels"], dim, 1, cfg_net, device)
+        net = PixelNet(spec["pixels"], dim, 1, cfg_net, device)
         out = ["state_action_value"] if with_action else ["state_value"]
         return ValueOperator(net, in_keys=["pixels", *keys], out_keys=out)
-    obs_dim = env.observation_spec["observation"].shape[-1]
+    key = "privileged_state" if "privileged_state" in spec.keys() else "observation"
+    obs_dim = spec[key].shape[-1]
     if with_action:
-        return ValueOperator(mlp(obs_dim + act_dim, 1, cfg_net, device), in_keys=["observation", "action"],
+        return ValueOperator(mlp(obs_dim + act_dim, 1, cfg_net, device), in_keys=[key, "action"],
                              out_keys=["state_action_value"])
-    return ValueOperator(mlp(obs_dim, 1, cfg_net, device), in_keys=["observation"])
+    return ValueOperator(mlp(obs_dim, 1, cfg_net, device), in_keys=[key])
 
 
 # ------------------------------------------------------------------------------------------------------- evaluation
 class Evaluation(NamedTuple):
     """Per env (B,): the return and length of its first episode, and, for goal-reaching tasks, the goal distance
-    [m] at the episode's end (else None); ``qpos (T, nq)``: env 0's trajectory when recorded (else None)."""
+    [m] at the episode's end (else None); ``qpos (T, nq)``: env 0's trajectory when recorded (else None); for
+    navigation tasks (which emit them), the episode's ``success`` (bool) and ``spl``."""
 
     ret: torch.Tensor
     length: torch.Tensor
     final_distance: torch.Tensor | None
     qpos: np.ndarray | None
+    success: torch.Tensor | None = None
+    spl: torch.Tensor | None = None
 
     def success_rate(self, success_distance: float) -> float:
         return (self.final_distance < success_distance).float().mean().item()
 
 
 @torch.no_grad()
-def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False, seed: int | None = None) -> Evaluation:
-    """Deterministic evaluation of each env's first episode (at most ``max_steps`` steps); with ``record``, env 0's
-    ``q`` trajectory for a video. Finished envs keep stepping, masked out, so the batch stays fixed; the loop stops
-    once every env has finished. With ``seed``, the episodes start from the same states at every call (drawn from
-    a forked RNG, leaving the caller's stream alone), so successive evaluations compare policies, not start draws."""
+def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False, seed: int | None = None,
+             deterministic: bool = True) -> Evaluation:
+    """Deterministic evaluation (or, not ``deterministic``, with sampled actions) of each env's first episode (at
+    most ``max_steps`` steps); with ``record``, env 0's ``q`` trajectory for a video. Finished envs keep stepping,
+    masked out, so the batch stays fixed; the loop stops once every env has finished. With ``seed``, the episodes
+    start from the same states at every call (drawn from a forked RNG, leaving the caller's stream alone), so
+    successive evaluations compare policies, not start draws; a navigation env draws its episodes from its own
+    generator, which ``seed`` then reseeds."""
+    nav = nav_policy.is_nav_env(env)
     if seed is None:
         td = env.reset()
     else:
         with torch.random.fork_rng(devices=[env.device] if env.device.type == "cuda" else []):
             torch.manual_seed(seed)
+            if nav:
+                env.set_seed(seed)
             td = env.reset()
     alive = torch.ones(env.batch_size, dtype=torch.bool, device=env.device)
     ret = torch.zeros(env.batch_size, device=env.device)
     length = torch.zeros(env.batch_size, dtype=torch.long, device=env.device)
     goal_task = "goal_distance" in env.observation_spec.keys()
     distance = torch.full(env.batch_size, float("nan"), device=env.device) if goal_task else None
-    qpos = [env.base_env.state.q[0].cpu()]
-    with set_exploration_type(ExplorationType.DETERMINISTIC):
+    success = torch.zeros(env.batch_size, dtype=torch.bool, device=env.device) if nav else None
+    spl = torch.zeros(env.batch_size, device=env.device) if nav else None
+    qpos = [env.base_env.state.q[0].cpu()] if record else None
+    with set_exploration_type(ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM):
         for t in range(max_steps):
             td = env.step(policy(td))
             ret += td["next", "reward"].squeeze(-1) * alive
             length += alive
             if goal_task:
                 distance = torch.where(alive, td["next", "goal_distance"].squeeze(-1), distance)
+            if nav:  # nonzero on an episode's last step only
+                success |= td["next", "success"].squeeze(-1) & alive
+                spl += td["next", "spl"].squeeze(-1) * alive
             if record and bool(alive[0]):
                 qpos.append(env.base_env.state.q[0].cpu())
             alive &= ~td["next", "done"].squeeze(-1)
             if t % 10 == 9 and not alive.any():  # one host sync every 10 steps
                 break
             td = env.step_mdp(td)
-    return Evaluation(ret, length, distance, torch.stack(qpos).double().numpy() if record else None)
+    return Evaluation(ret, length, distance, torch.stack(qpos).double().numpy() if record else None, success, spl)
 
 
 def load_policy(ckpt: dict, env: TransformedEnv, device) -> ProbabilisticActor:
@@ -409,6 +477,12 @@ class Run:
             metrics.update({"eval/success_rate": success,
                             "eval/final_distance": result.final_distance.mean().item()})
             text += f" (success {success:.0%}, final distance {result.final_distance.median().item():.3f} m)"
+        if result.spl is not None:
+            success, spl = result.success.float().mean().item(), result.spl.mean().item()
+            self.history["eval_success"].append((self.env_steps, self.wall, success))
+            self.history.setdefault("eval_spl", []).append((self.env_steps, self.wall, spl))
+            metrics.update({"eval/success_rate": success, "eval/spl": spl})
+            text += f" (success {success:.0%}, SPL {spl:.3f}, length {result.length.float().mean().item():.0f})"
         self.log(metrics)
         return text
 

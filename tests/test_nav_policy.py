@@ -1,0 +1,103 @@
+"""PointNav's policy and value networks (algos/nav_policy.py) and the PPO recipe on pointnav: shapes, a valid
+categorical policy that reads both depth and goal, the env as the recipe wraps it, evaluation's success and SPL, two
+PPO iterations through Hydra, and clear errors for bad configs."""
+
+import pytest
+import torch
+from omegaconf import OmegaConf
+from torch.distributions import Categorical
+from torchrl.envs import ExplorationType, set_exploration_type
+from torchrl.envs.utils import check_env_specs
+
+from test_train import QUIET, config
+from torchsim.algos.common import evaluate, make_actor, make_env, make_eval_env, make_value
+from torchsim.algos.nav_policy import STOP_LOGIT_INIT, NavNet
+from torchsim.algos.train import run
+from torchsim.envs.nav import PointNav
+from torchsim.envs.nav.pointnav import SPLIT_SEEDS, STOP
+
+SMALL = ["env=pointnav", "env.num_layouts=4", "algo.num_envs=8", "algo.unroll=4", "algo.minibatches=2",
+         "eval.episodes=4", "eval.max_steps=8", *QUIET]
+
+
+@pytest.fixture(scope="module")
+def cfg():
+    return config(*SMALL)
+
+
+@pytest.fixture(scope="module")
+def env(cfg):
+    return make_env(cfg, 6, "cpu", train=True)
+
+
+def test_env_as_the_recipe_wraps_it(cfg, env):
+    check_env_specs(env)
+    check_env_specs(make_env(cfg, 3, "cpu"))
+    assert env.base_env.layout_seeds[0] == SPLIT_SEEDS["train"]
+    held_out = make_eval_env(cfg, env)
+    assert held_out.batch_size == (4,) and held_out.base_env.layout_seeds[0] == SPLIT_SEEDS["val"]
+    assert env.transform[0].in_keys == ["depth"]         # the running normaliser: depth, per pixel
+
+
+def test_actor_and_value_shapes_and_a_valid_categorical(cfg, env):
+    actor, value = make_actor(env, cfg.algo.policy_net, "cpu"), make_value(env, cfg.algo.value_net, "cpu", False)
+    td = env.reset()
+    out = actor(td.clone())
+    assert out["logits"].shape == (6, 4) and out["action"].shape == (6,) and out["action"].dtype == torch.long
+    assert ((out["action"] >= 0) & (out["action"] < 4)).all()
+    assert torch.isfinite(out["action_log_prob"]).all()
+    dist = actor.get_dist(td.clone())
+    assert isinstance(dist, Categorical) and torch.allclose(dist.probs.sum(-1), torch.ones(6))
+    torch.testing.assert_close(out["action_log_prob"], dist.log_prob(out["action"]))
+    # the untrained policy rarely STOPs (its STOP logit starts STOP_LOGIT_INIT lower)
+    assert (dist.probs[:, STOP] < dist.probs[:, 1:].min(-1).values * torch.exp(torch.tensor(1 - STOP_LOGIT_INIT))).all()
+    with set_exploration_type(ExplorationType.DETERMINISTIC):
+        assert torch.equal(actor(td.clone())["action"], out["logits"].argmax(-1))
+    assert value(td.clone())["state_value"].shape == (6, 1)
+    td = env.rand_step(td)                               # a PPO batch's shape: (envs, time)
+    assert actor(torch.stack([td, td], 1))["action"].shape == (6, 2)
+
+
+def test_policy_reads_depth_and_goal(cfg, env):
+    actor = make_actor(env, cfg.algo.policy_net, "cpu")
+    td = env.reset()
+    logits = actor.module[0](td.clone())["logits"]
+    other_depth = td.clone().set("depth", td["depth"].flip(-1) + 1.0)
+    other_goal = td.clone().set("pointgoal", td["pointgoal"] + torch.tensor([2.0, 1.5]))
+    for changed in (other_depth, other_goal):
+        assert not torch.allclose(actor.module[0](changed)["logits"], logits)
+
+
+def test_one_hot_actions():
+    env = PointNav(3, num_layouts=2, one_hot_actions=True)
+    actor = make_actor(env, OmegaConf.create({"hidden": [16], "activation": "relu"}), "cpu")
+    action = actor(env.reset())["action"]
+    assert action.shape == (3, 4) and torch.equal(action.sum(-1), torch.ones(3, dtype=action.dtype))
+
+
+def test_evaluation_counts_success_and_spl(cfg):
+    """The scripted follower, evaluated through the recipe's ``evaluate``: every episode a success, SPL near 1."""
+    env = make_env(cfg, 4, "cpu")
+
+    def follower(td):
+        return td.set("action", env.base_env.shortest_path_action())
+
+    result = evaluate(env, follower, 500, seed=3)
+    assert result.success.all() and (result.spl > 0.8).all() and (result.spl <= 1).all()
+    again = evaluate(env, follower, 500, seed=3)     # a seed fixes the held-out episodes
+    assert torch.equal(result.length, again.length)
+
+
+def test_two_ppo_iterations_through_hydra(tmp_path):
+    finished = run(config(*SMALL, "budget.env_steps=64", "logger=csv"), tmp_path)
+    assert finished.iteration == 2 and finished.env_steps == 64
+    assert len(finished.history["eval_success"]) == len(finished.history["eval_spl"]) == 2
+    assert (tmp_path / "checkpoints" / "last.pt").is_file() and any((tmp_path / "logs").rglob("*spl*"))
+
+
+def test_bad_configs_fail_clearly(cfg, env):
+    bad = OmegaConf.create({**OmegaConf.to_container(cfg.algo.policy_net), "encoder": {"chanels": [8]}})
+    with pytest.raises(ValueError, match="chanels"):
+        NavNet(env.observation_spec["depth"], bad, 4, lambda *a: None, "cpu")
+    with pytest.raises(ValueError, match="discrete actions"):
+        make_value(env, cfg.algo.value_net, "cpu", with_action=True)
