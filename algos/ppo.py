@@ -13,7 +13,8 @@ from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from torchsim.algos.common import Run, make_actor, make_env, make_eval_env, make_value, maybe_compile, obs_norm
+from torchsim.algos.common import (Run, make_actor, make_env, make_eval_env, make_state_probe, make_value,
+                                   maybe_compile, obs_norm)
 from torchsim.algos.distributed import Ranks
 from torchsim.algos.optim import make_optimizer, make_schedule
 
@@ -34,12 +35,16 @@ class PPO:
         self.loss_module = ClipPPOLoss(self.actor, self.critic, clip_epsilon=a.clip_epsilon,
                                        entropy_coeff=a.entropy_coeff, critic_coeff=a.critic_coeff,
                                        normalize_advantage=not ranks.parallel, loss_critic_type="l2")
-        ranks.broadcast_([*self.loss_module.parameters(), *self.loss_module.buffers()])
+        # a pixel policy's auxiliary loss (algos.common.StateProbe): its read-out is trained with the rest
+        self.state_probe = make_state_probe(self.actor, self.env, a.get("state_probe_coeff", 0.0), device)
+        self.params = [*self.loss_module.parameters(),
+                       *(self.state_probe.readout.parameters() if self.state_probe is not None else ())]
+        ranks.broadcast_([*self.params, *self.loss_module.buffers()])
         self.gae = GAE(gamma=a.gamma, lmbda=a.gae_lambda, value_network=self.critic, average_gae=False,
                        device=device)
         self.gae.set_keys(reward="scaled_reward")  # make_env's RewardScaling writes it beside the task's reward
         frames = num_envs * a.unroll
-        self.optim = make_optimizer(self.loss_module.parameters(), a, frames * ranks.world_size)
+        self.optim = make_optimizer(self.params, a, frames * ranks.world_size)
         self.lr_schedule = make_schedule(self.optim, a, cfg.budget.env_steps, frames * ranks.world_size)
         if frames % a.minibatches:
             raise ValueError(f"algo.minibatches ({a.minibatches}) must divide each rank's env steps per iteration "
@@ -59,6 +64,8 @@ class PPO:
     def state(self) -> dict:
         """What a checkpoint holds and a resumed run restores."""
         state = {"loss": self.loss_module, "optim": self.optim, "obs_norm": obs_norm(self.env)}
+        if self.state_probe is not None:
+            state["state_probe"] = self.state_probe.readout
         return state if self.lr_schedule is None else {**state, "lr_schedule": self.lr_schedule}
 
     def update(self, data, check_update) -> dict:
@@ -79,8 +86,10 @@ class PPO:
         lr = self.optim.param_groups[0]["lr"]
         if self.lr_schedule is not None:
             self.lr_schedule.step()
-        return {**losses.select("loss_objective", "loss_critic", "loss_entropy").detach(), "kl_approx": kl,
-                "epochs": epoch, "lr": lr}
+        logged = ["loss_objective", "loss_critic", "loss_entropy"]
+        if self.state_probe is not None:
+            logged.append("loss_state_probe")
+        return {**losses.select(*logged).detach(), "kl_approx": kl, "epochs": epoch, "lr": lr}
 
     def _epochs(self, a, check_update):
         """The minibatch Adam steps of one update: (last minibatch's losses, last epoch's mean KL, epochs run)."""
@@ -92,10 +101,13 @@ class PPO:
                     minibatch[advantage] = self.ranks.standardize(minibatch[advantage])
                 losses = self.loss_fn(minibatch)
                 loss = losses["loss_objective"] + losses["loss_critic"] + losses["loss_entropy"]
+                if self.state_probe is not None:
+                    losses["loss_state_probe"] = self.state_probe(minibatch["pixels"], minibatch["privileged_state"])
+                    loss = loss + a.state_probe_coeff * losses["loss_state_probe"]
                 self.optim.zero_grad()
                 loss.backward()
-                self.ranks.average_grads_(self.loss_module.parameters())
-                grad_norm = nn.utils.clip_grad_norm_(self.loss_module.parameters(), a.max_grad_norm or float("inf"))
+                self.ranks.average_grads_(self.params)
+                grad_norm = nn.utils.clip_grad_norm_(self.params, a.max_grad_norm or float("inf"))
                 check_update(losses, grad_norm, minibatch)
                 self.optim.step()
                 kl.append(losses["kl_approx"].detach())

@@ -23,14 +23,17 @@ ENVS = {
 
 #: Pixel versions of tasks (``torchsim.envs.pixels``): name -> (task, default keyword arguments). Not in
 #: :func:`list` (the state tasks); :func:`make` builds them, its keyword arguments overriding these.
+#: ``inverted_pendulum_pixels`` also emits the full state as ``privileged_state``, which its recipe's critic reads
+#: instead of the images (the policy sees the images and the proprioception only).
 PIXEL_ENVS = {
     # top-down RGB 48x48; the policy gets the arm's angles and rates, the target only through the image
     "reacher_pixels": ("reacher", dict(from_pixels=True, pixel_size=48, pixel_state="proprio",
                                        render_compile=True)),
-    # depth 48x48 from a camera riding on the cart, 2 stacked frames; the policy gets the cart's position and
-    # velocity, the pole's angle and rate only through the images
+    # depth 48x48 from a camera riding on the cart, 4 stacked frames (120 ms: the pole's rate, docs/training.md);
+    # the policy gets the cart's position and velocity, the pole's angle and rate only through the images
     "inverted_pendulum_pixels": ("inverted_pendulum", dict(from_pixels=True, pixel_size=48, pixel_state="proprio",
-                                                           frame_stack=2, render_compile=True)),
+                                                           frame_stack=4, render_compile=True,
+                                                           pixel_privileged_state=True)),
     # the same through a 24x96 strip across the pole (0.63 cm per pixel instead of 1.9)
     "inverted_pendulum_pixels_strip": ("inverted_pendulum", dict(
         from_pixels=True, cameras=pendulum_strip, pixel_size=(24, 96), pixel_state="proprio", frame_stack=2,
@@ -51,8 +54,8 @@ def make(name: str, num_envs: int = 1, device="cpu", **kwargs) -> TorchsimEnv:
     """Build env ``name`` with ``batch_size=(num_envs,)`` on ``device``; ``kwargs`` go to the env class
     (``dtype``, ``episode_length``, ``native_autoreset``, ``method``, ``substeps``, ``stagger_episodes``, ``stepper``,
     and the pixel options ``from_pixels``, ``cameras``, ``pixel_size``, ``pixel_kind``, ``pixel_state``,
-    ``frame_stack``, ``render_compile``, ``pixel_supersample``: :class:`TorchsimEnv`). ``name`` may also be one of
-    :data:`PIXEL_ENVS` or :data:`NAV_ENVS`."""
+    ``frame_stack``, ``render_compile``, ``pixel_supersample``, ``pixel_privileged_state``: :class:`TorchsimEnv`).
+    ``name`` may also be one of :data:`PIXEL_ENVS` or :data:`NAV_ENVS`."""
     if name in NAV_ENVS:
         return NAV_ENVS[name](num_envs, device=device, **kwargs)
     if name in PIXEL_ENVS:

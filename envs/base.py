@@ -86,6 +86,8 @@ class TorchsimEnv(EnvBase):
             ``"full"`` (the state vector), ``"proprio"`` (the task's proprioceptive part) or ``"none"``.
             frame_stack: frames stacked on the channel axis. render_compile: ``render(..., compile=True)``.
             pixel_supersample: render ``k x k`` rays per pixel and average them (anti-aliased edges).
+            pixel_privileged_state: also emit the full state vector as ``privileged_state``, for a critic trained
+            in simulation (asymmetric actor-critic); the recipes' policies never read it.
     """
 
     #: The model asset in ``envs/assets``: MJCF (``.xml``) or URDF (``.urdf``, translated by ``urdf_to_mjcf``).
@@ -117,7 +119,7 @@ class TorchsimEnv(EnvBase):
                  stagger_episodes: bool = False, stepper: "str | torchsim.Stepper" = "eager",
                  from_pixels: bool = False, cameras=None, pixel_size=48, pixel_kind: str | None = None,
                  pixel_state: str = "full", frame_stack: int = 1, render_compile: bool = False,
-                 pixel_supersample: int = 1):
+                 pixel_supersample: int = 1, pixel_privileged_state: bool = False):
         if int(num_envs) < 1:
             raise ValueError(f"num_envs must be a positive integer, got {num_envs}")
         super().__init__(device=device, batch_size=torch.Size([int(num_envs)]))
@@ -149,7 +151,10 @@ class TorchsimEnv(EnvBase):
         self.pixel_obs = None
         if from_pixels:
             self.pixel_obs = PixelObservation(self, cameras, pixel_size, pixel_kind, pixel_state, frame_stack,
-                                              render_compile, pixel_supersample)
+                                              render_compile, pixel_supersample, pixel_privileged_state)
+        elif pixel_privileged_state:
+            raise ValueError(f"{type(self).__name__}: pixel_privileged_state needs from_pixels=True (without images "
+                             "the observation is the full state already)")
         self._make_specs(dtype)
         self.state = self._initial_state()
         self.task = self._sample_task(self.state)
@@ -254,6 +259,9 @@ class TorchsimEnv(EnvBase):
                 del self.observation_spec["observation"]
             else:
                 self.observation_spec["observation"] = Unbounded((*shape, size), dtype=dtype, device=dev)
+            if self.pixel_obs.privileged_state:
+                self.observation_spec["privileged_state"] = Unbounded((*shape, self.observation_size), dtype=dtype,
+                                                                      device=dev)
         self.reward_spec = Unbounded((*shape, 1), dtype=dtype, device=dev)
         flag = lambda: Categorical(2, (*shape, 1), dtype=torch.bool, device=dev)  # noqa: E731
         self.full_done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=shape)

@@ -12,7 +12,9 @@ With ``frame_stack=k`` the last ``k`` frames are stacked on the channel axis, ol
 W)``); a reset env's stack holds ``k`` copies of its first frame. ``pixel_state`` says what ``observation`` holds
 beside the images: ``"full"`` (the task's state vector, unchanged), ``"proprio"`` (the task's proprioceptive part
 only, :data:`PIXEL_TASKS`: what a pixel policy may read without being handed what the images show), ``"none"``
-(no ``observation`` key).
+(no ``observation`` key). ``pixel_privileged_state=True`` (an env option) also emits the task's full state vector as
+``privileged_state``, for a critic that only trains in simulation (asymmetric actor-critic, Pinto et al. 2018): the
+recipes' critics read it instead of the images, the policy never does.
 
 Each task's default camera, colour mode and proprioception are in :data:`PIXEL_TASKS` (other tasks: a world
 camera looking at the model's centre from the front-left, above, RGB, no proprioception subset).
@@ -85,7 +87,7 @@ class PixelObservation:
     """The image half of a pixel env's observation: the scene, the cameras, the image buffer and its spec."""
 
     def __init__(self, env, cameras=None, size=48, kind=None, state="full", frame_stack=1, compile=False,
-                 supersample=1):
+                 supersample=1, privileged_state=False):
         task = PIXEL_TASKS.get(type(env).__name__, PixelTask(_overview))
         name = type(env).__name__
         self.scene = Scene.build(env.mj_model, env.sys, skip_unsupported=True)
@@ -104,6 +106,7 @@ class PixelObservation:
             raise ValueError(f"{name}: no proprioceptive observation is defined (envs/pixels.py, PIXEL_TASKS); "
                              "use pixel_state='full' or 'none'")
         self.state, self.shading, self.compile = state, task.shading, bool(compile)
+        self.privileged_state = bool(privileged_state)
         self.proprio = None if task.proprio is None else torch.tensor(task.proprio, device=env.device)
         self.height, self.width = (int(size), int(size)) if isinstance(size, int) else map(int, size)
         self.frame_stack, self.supersample = int(frame_stack), int(supersample)
@@ -167,9 +170,11 @@ class PixelObservation:
         self.frames = None
 
     def fields(self, observation: torch.Tensor) -> dict:
-        """The observation entries beside the caller's: ``pixels`` and, unless ``pixel_state="none"``, the task's
-        state ``observation`` or its proprioceptive columns."""
+        """The observation entries beside the caller's: ``pixels``, unless ``pixel_state="none"`` the task's state
+        ``observation`` or its proprioceptive columns, and with ``privileged_state`` the whole state vector."""
         out = {"pixels": self.frames}
+        if self.privileged_state:
+            out["privileged_state"] = observation
         if self.state == "full":
             out["observation"] = observation
         elif self.state == "proprio":

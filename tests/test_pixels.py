@@ -7,7 +7,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 import torchsim.envs as envs
-from torchsim.algos.common import make_actor, make_value
+from torchsim.algos.common import make_actor, make_state_probe, make_value
 from torchsim.render import Camera, render
 
 torch.set_num_threads(1)
@@ -29,10 +29,18 @@ def test_check_env_specs(name):
     env = envs.make(name, 4, **SMALL)
     check_env_specs(env)
     spec = env.observation_spec["pixels"]
-    channels = 3 if name == "reacher_pixels" else 2  # RGB; 2 stacked depth frames
+    channels = 3 if name == "reacher_pixels" else 4  # RGB; 4 stacked depth frames
     assert spec.shape == (4, channels, 24, 24)
     assert spec.dtype == (torch.uint8 if name == "reacher_pixels" else torch.float32)
     assert env.observation_spec["observation"].shape == (4, 6 if name == "reacher_pixels" else 2)
+    # the critic's input: the task's whole state vector, of which the policy's observation is the proprioception
+    env = envs.make(name, 4, pixel_privileged_state=True, **SMALL)
+    check_env_specs(env)
+    state_env = envs.make(name.removesuffix("_pixels"), 4)
+    assert env.observation_spec["privileged_state"].shape == state_env.observation_spec["observation"].shape
+    td = random_steps(env, 3)
+    proprio = env.pixel_obs.proprio
+    assert torch.equal(td["privileged_state"].index_select(-1, proprio), td["observation"])
 
 
 def test_pendulum_strip_camera_sees_the_tilt():
@@ -64,6 +72,8 @@ def test_options_shapes_and_specs():
     assert env.reset()["pixels"].float().std() > 0  # the ant is in view, not an empty frame
     with pytest.raises(ValueError, match="no proprioceptive observation"):
         envs.make("ant", 2, from_pixels=True, pixel_state="proprio")
+    with pytest.raises(ValueError, match="pixel_privileged_state needs from_pixels"):
+        envs.make("reacher", 2, pixel_privileged_state=True)
 
 
 def test_supersampled_pixels_average_a_finer_render():
@@ -74,7 +84,7 @@ def test_supersampled_pixels_average_a_finer_render():
     td = random_steps(env, 2)
     fine = render(env.pixel_obs.scene, env.state, env.pixel_obs.camera, 48, 48, rgb=True).rgb  # (B, 48, 48, 3)
     pooled = torch.nn.functional.avg_pool2d(fine.permute(0, 3, 1, 2), 3)
-    assert torch.equal(td["pixels"][:, 3:], (pooled * 255).round().to(torch.uint8))  # the newest frame
+    assert torch.equal(td["pixels"][:, -3:], (pooled * 255).round().to(torch.uint8))  # the newest frame
     coarse = render(env.pixel_obs.scene, env.state, env.pixel_obs.camera, 16, 16, rgb=True).rgb
     distinct = lambda images: len(torch.unique(images.reshape(-1, 3), dim=0))  # noqa: E731
     assert distinct(pooled) > distinct(coarse)  # blended edge colours
@@ -100,8 +110,8 @@ def test_pixels_equal_a_direct_render_of_the_state():
     td = env.step(TensorDict(action=torch.full((4, 1), 0.5), pixels=before, batch_size=[4]))
     depth = render(scene := env.pixel_obs.scene, env.state, env.pixel_obs.camera, 24, 24).depth
     after = td["next", "pixels"]
-    assert torch.equal(after[:, 1], depth)  # the newest frame last
-    assert torch.equal(after[:, 0], before[:, 1])  # the previous newest moved down the stack
+    assert torch.equal(after[:, -1], depth)  # the newest frame last
+    assert torch.equal(after[:, :-1], before[:, 1:])  # the others moved down the stack, the oldest dropped
     assert ((depth > 1.0) & (depth < 2.0)).any() and (depth == scene.zfar).any()  # pole at ~1.5 m, background
 
 
@@ -149,15 +159,49 @@ def test_bad_camera_and_options_give_clear_errors():
 def test_pixel_networks():
     cfg = OmegaConf.create({"hidden": [16], "activation": "silu", "cnn": {"channels": [4, 8], "kernels": [3, 3],
                                                                           "strides": [2, 2], "features": 8}})
-    for name in ("reacher_pixels", "inverted_pendulum_pixels"):
-        env = envs.make(name, 3, **SMALL)
+    for name, privileged in (("reacher_pixels", False), ("inverted_pendulum_pixels", False),
+                             ("inverted_pendulum_pixels", True)):
+        env = envs.make(name, 3, pixel_privileged_state=privileged, **SMALL)
         td = env.rollout(2, break_when_any_done=False)  # (B, T) leading dims, as PPO's GAE sees them
         actor, critic = make_actor(env, cfg, "cpu"), make_value(env, cfg, "cpu", with_action=False)
-        assert "pixels" in actor.in_keys and "observation" in actor.in_keys
+        assert set(actor.in_keys) == {"pixels", "observation"}  # never the privileged state
         out = critic(actor(td.clone()))
         assert out["action"].shape == (3, 2, env.action_spec.shape[-1]) and out["state_value"].shape == (3, 2, 1)
         q = make_value(env, cfg, "cpu", with_action=True)(td.clone())["state_action_value"]
         assert q.shape == (3, 2, 1)
-        # the image matters: the value changes when the pixels do
+        # the image matters to the policy, and to the critic unless it reads the privileged state instead
         blank = td.clone().set("pixels", torch.zeros_like(td["pixels"]))
-        assert not torch.allclose(critic(blank)["state_value"], out["state_value"])
+        assert not torch.allclose(actor(blank.clone())["loc"], actor(td.clone())["loc"])
+        assert critic.in_keys == (["privileged_state"] if privileged else ["pixels", "observation"])
+        assert torch.allclose(critic(blank)["state_value"], out["state_value"]) == privileged
+
+
+def test_state_probe_trains_the_policy_cnn():
+    """``algo.state_probe_coeff``'s auxiliary loss reads the policy's own CNN features: its gradient reaches the
+    policy's conv layers (not its MLP head), and Adam steps on one batch fit what the images show (the pole's
+    angle: the camera rides on the cart, so its position and velocity are not in view); refused without
+    ``privileged_state``; none at coefficient 0."""
+    cfg = OmegaConf.create({"hidden": [16], "activation": "silu", "cnn": {"channels": [4, 8], "kernels": [3, 3],
+                                                                          "strides": [2, 2], "features": 8}})
+    env = envs.make("inverted_pendulum_pixels", 16, **SMALL)
+    td = random_steps(env, 10)
+    actor = make_actor(env, cfg, "cpu")
+    probe = make_state_probe(actor, env, 1.0, "cpu")
+    assert any(probe.encoder is m for m in actor.modules())
+    probe(td["pixels"], td["privileged_state"]).backward()
+    assert probe.encoder.conv[0].weight.grad.abs().sum() > 0 and probe.readout.weight.grad.abs().sum() > 0
+    assert all(p.grad is None for p in probe.encoder.head.parameters())
+    optim = torch.optim.Adam(probe.parameters(), 1e-2)
+    for _ in range(100):
+        loss = probe(td["pixels"], td["privileged_state"])
+        optim.zero_grad()
+        loss.backward()
+        optim.step()
+    angle = td["privileged_state"][:, 1]  # (cart position, pole angle, their rates)
+    with torch.no_grad():
+        residual = probe.readout(probe.encoder.features(td["pixels"]))[:, 1] - angle
+    assert residual.square().mean().sqrt() < 0.3 * angle.std()
+    assert make_state_probe(actor, env, 0.0, "cpu") is None
+    with pytest.raises(ValueError, match="privileged_state"):
+        make_state_probe(actor, envs.make("inverted_pendulum_pixels", 2, pixel_privileged_state=False, **SMALL), 1.0,
+                         "cpu")
