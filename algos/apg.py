@@ -21,7 +21,8 @@ import torch
 from tensordict import TensorDict
 from torch import nn
 
-from torchsim.algos.common import Run, make_actor, make_env, make_eval_env, obs_norm
+from torchsim.algos.common import Run, make_env, make_eval_env, obs_norm
+from torchsim.algos.networks import make_actor
 from torchsim.algos.distributed import Ranks
 
 

@@ -6,7 +6,7 @@ stage a strided 3x3 convolution and ``blocks`` residual blocks (two 3x3 convolut
 gate, the skip connection), no normalisation layers, ReLU throughout. Depth arrives standardised per pixel by the
 recipe's running normaliser (``algos/common.py``, ``make_env``). The goal ``(distance, angle)`` enters as
 ``(log(1 + distance), cos angle, sin angle)`` through a linear layer and ReLU. The head is the recipe's ``mlp``
-(passed in as ``make_head``: this module does not import ``common``, which imports it).
+(passed in as ``make_head``: this module does not import ``networks``, which imports it).
 """
 
 import torch

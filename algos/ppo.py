@@ -13,8 +13,8 @@ from torchrl.data.replay_buffers import SamplerWithoutReplacement
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from torchsim.algos.common import (Run, make_actor, make_env, make_eval_env, make_state_probe, make_value,
-                                   maybe_compile, obs_norm)
+from torchsim.algos.common import Run, make_env, make_eval_env, maybe_compile, obs_norm
+from torchsim.algos.networks import make_actor, make_state_probe, make_value
 from torchsim.algos.distributed import Ranks
 from torchsim.algos.optim import make_optimizer, make_schedule
 
@@ -35,7 +35,7 @@ class PPO:
         self.loss_module = ClipPPOLoss(self.actor, self.critic, clip_epsilon=a.clip_epsilon,
                                        entropy_coeff=a.entropy_coeff, critic_coeff=a.critic_coeff,
                                        normalize_advantage=not ranks.parallel, loss_critic_type="l2")
-        # a pixel policy's auxiliary loss (algos.common.StateProbe): its read-out is trained with the rest
+        # a pixel policy's auxiliary loss (algos.networks.StateProbe): its read-out is trained with the rest
         self.state_probe = make_state_probe(self.actor, self.env, a.get("state_probe_coeff", 0.0), device)
         self.params = [*self.loss_module.parameters(),
                        *(self.state_probe.readout.parameters() if self.state_probe is not None else ())]

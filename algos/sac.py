@@ -10,7 +10,8 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate
 
-from torchsim.algos.common import Run, make_actor, make_env, make_eval_env, make_value, maybe_compile, obs_norm
+from torchsim.algos.common import Run, make_env, make_eval_env, maybe_compile, obs_norm
+from torchsim.algos.networks import make_actor, make_value
 from torchsim.algos.distributed import Ranks
 
 

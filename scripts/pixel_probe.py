@@ -5,7 +5,7 @@
 
 Collects ``--steps`` steps of ``inverted_pendulum_pixels`` at 256 envs under uniform random actions (episodes end
 when the pole falls past 0.2 rad, so the images cover the balancing range), with the pole's true angle [rad] and
-rate [rad/s] beside each stack of frames; trains the recipe's encoder (``algos.common.PixelNet``, the
+rate [rad/s] beside each stack of frames; trains the recipe's encoder (``algos.networks.PixelNet``, the
 ``tuned/ppo_inverted_pendulum_pixels.yaml`` policy network) by regression on both (standardised), 1,500 Adam
 steps of 256; and prints the held-out (4,096 samples) RMS errors, overall and where |angle| < 0.1 rad. The errors
 bound what a PPO policy on that encoder can know: the angle comes from one frame, the rate only from the difference
@@ -20,7 +20,7 @@ from omegaconf import OmegaConf
 
 import torchsim.algos
 import torchsim.envs
-from torchsim.algos.common import PixelNet
+from torchsim.algos.networks import PixelNet
 
 
 def collect(frame_stack: int, steps: int, envs: int = 256):

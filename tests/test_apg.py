@@ -10,7 +10,8 @@ from torchrl.envs import Compose, ExplorationType, RewardSum, StepCounter, Trans
 
 import torchsim.envs
 from torchsim.algos.apg import Rollout, policy_net
-from torchsim.algos.common import RunningNorm, make_actor, make_env
+from torchsim.algos.common import RunningNorm, make_env
+from torchsim.algos.networks import make_actor
 from torchsim.algos.distributed import Ranks
 from torchsim.algos.train import CONFIG_DIR, RECIPES, run
 from torchsim.envs.pendulums import InvertedPendulum

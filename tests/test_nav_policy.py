@@ -10,7 +10,8 @@ from torchrl.envs import ExplorationType, set_exploration_type
 from torchrl.envs.utils import check_env_specs
 
 from test_train import QUIET, config
-from torchsim.algos.common import evaluate, make_actor, make_env, make_eval_env, make_value
+from torchsim.algos.common import evaluate, make_env, make_eval_env
+from torchsim.algos.networks import make_actor, make_value
 from torchsim.algos.nav_policy import STOP_LOGIT_INIT, NavNet
 from torchsim.algos.train import run
 from torchsim.envs.nav import PointNav

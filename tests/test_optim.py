@@ -1,5 +1,5 @@
 """The PPO recipe's large-batch options: optimiser and learning-rate schedule (``torchsim.algos.optim``), and
-bfloat16 matrix products (``algos.common.Bfloat16Matmuls``)."""
+bfloat16 matrix products (``algos.networks.Bfloat16Matmuls``)."""
 
 import math
 
@@ -7,7 +7,7 @@ import pytest
 import torch
 from omegaconf import OmegaConf
 
-from torchsim.algos.common import Bfloat16Matmuls, mlp
+from torchsim.algos.networks import Bfloat16Matmuls, mlp
 from torchsim.algos.optim import make_optimizer, make_schedule
 
 

@@ -7,7 +7,7 @@ from tensordict import TensorDict
 from torchrl.envs.utils import check_env_specs
 
 import torchsim.envs as envs
-from torchsim.algos.common import make_actor, make_state_probe, make_value
+from torchsim.algos.networks import make_actor, make_state_probe, make_value
 from torchsim.render import Camera, render
 
 torch.set_num_threads(1)
