@@ -9,9 +9,10 @@ The state is carried detached from one unroll to the next (truncated back-propag
 unroll restart from fresh states, which carry no gradient. Gradients are clipped to ``max_grad_norm``.
 
 The rollout is written here against the env's pieces (``_ctrl``, ``_advance``: the physics, reward, termination
-and task of one step; ``_restart``, ``_observation``), not through ``env.step``: TorchRL's step path updates the normaliser and the
-episode counters in place and returns a TensorDict per step, which autograd need not see, and the task functions
-are plain differentiable torch. Those functions are the env's own, so the loss is the return of the same task.
+and task of one step; ``_restart``, ``_observation``), not through ``env.step``: TorchRL's step path updates the
+normaliser and the episode counters in place and returns a TensorDict per step, which autograd need not see, and the
+task functions are plain differentiable torch. Those functions are the env's own, so the loss is the return of the
+same task.
 
 A reward that is constant while an episode runs (the pendulums' 1 per step until they fall) has zero gradient:
 APG needs a reward that varies smoothly with the state (a distance, a velocity).

@@ -64,24 +64,24 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     physics = cfg.get("physics", "torchsim")  # checkpoints from before the key ran on torchsim
     if physics not in ("torchsim", "mujoco"):
         raise ValueError(f"physics must be 'torchsim' or 'mujoco', got {physics!r}")
-    nav = cfg.env.name in torchsim.envs.NAV_ENVS
-    if nav:
+    if cfg.env.name in torchsim.envs.NAV_ENVS:
         base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device,
                                   episode_length=cfg.env.episode_length, num_layouts=cfg.env.num_layouts,
                                   split=cfg.env.split if train else cfg.env.eval_split, seed=cfg.seed)
-    elif like is not None:
-        stepper = like.base_env.stepper
-    elif physics == "mujoco":
-        probe = torchsim.envs.make(cfg.env.name, device=device)  # its System and MuJoCo model, in the env's dtype
-        stepper = MujocoStepper(probe.base_sys, probe.mj_model)
+        normalised = ["depth"]
     else:
-        stepper = "auto" if cfg.compile else "eager"
-    if not nav:
+        if like is not None:
+            stepper = like.base_env.stepper
+        elif physics == "mujoco":
+            probe = torchsim.envs.make(cfg.env.name, device=device)  # its System and MuJoCo model, in its dtype
+            stepper = MujocoStepper(probe.base_sys, probe.mj_model)
+        else:
+            stepper = "auto" if cfg.compile else "eager"
         base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device,
                                   episode_length=cfg.env.episode_length,
                                   stagger_episodes=train and cfg.stagger_episodes, stepper=stepper)
-    vectors = [k for k in ("observation", "privileged_state") if k in base.observation_spec.keys()]
-    norm = RunningNorm(in_keys=["depth"] if nav else vectors or ["observation"], decay=cfg.obs_norm_decay, eps=1e-4,
+        normalised = [k for k in ("observation", "privileged_state") if k in base.observation_spec.keys()]
+    norm = RunningNorm(in_keys=normalised or ["observation"], decay=cfg.obs_norm_decay, eps=1e-4,
                        reduce_batch_dims=True)
     transforms = [norm, RewardSum(), StepCounter()]
     if train:  # the losses learn from scaled_reward; reward (and episode_reward) stay the task's
