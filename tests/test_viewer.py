@@ -52,11 +52,21 @@ def project(point, width, height):
 
 
 def centroid(rgb, channel):
-    """(column, row) centroid and count of the pixels where ``channel`` (1 green, 2 blue) exceeds both others by
-    40/255 (the viewer's lighting shades the colours; its notices are orange and grey)."""
+    """(column, row) centroid and pixel count of the silhouette of the body coloured ``channel`` (1 green, 2 blue).
+
+    Shading-independent, because the browser's lighting varies between machines (a brighter specular highlight
+    once whitened the top of the ball and moved a colour-threshold centroid 2.6 px down): a pixel is the body's
+    where it is off the white background and ``channel`` is its largest by 15/255 (the viewer's notices are orange
+    and grey); each row of the silhouette is then filled between its first and last such pixel, which restores a
+    white highlight inside the convex outline of a sphere or a box."""
     rgb = rgb.astype(np.int32)
     others = [c for c in range(3) if c != channel]
-    mask = (rgb[..., channel] > rgb[..., others[0]] + 40) & (rgb[..., channel] > rgb[..., others[1]] + 40)
+    coloured = ((765 - rgb.sum(-1)) > 60) & (rgb[..., channel] > rgb[..., others[0]] + 15) \
+        & (rgb[..., channel] > rgb[..., others[1]] + 15)
+    columns = np.arange(rgb.shape[1])
+    first = np.where(coloured, columns, rgb.shape[1]).min(1, keepdims=True)
+    last = np.where(coloured, columns, -1).max(1, keepdims=True)
+    mask = (columns >= first) & (columns <= last)
     rows, cols = np.nonzero(mask)
     return (cols.mean() if len(cols) else np.nan, rows.mean() if len(rows) else np.nan), int(mask.sum())
 
