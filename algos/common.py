@@ -24,6 +24,7 @@ import torchsim.envs
 from torchsim.algos import nav_policy
 from torchsim.algos.distributed import Ranks
 from torchsim.algos.networks import make_actor
+from torchsim.envs.nav import video as nav_video
 from torchsim.mujoco_stepper import MujocoStepper
 
 # VecNormV2 (and so RunningNorm) warns on every call that batched containers are experimental; its batch reduction
@@ -111,13 +112,14 @@ def obs_norm(env: TransformedEnv) -> RunningNorm:
 # ------------------------------------------------------------------------------------------------------- evaluation
 class Evaluation(NamedTuple):
     """Per env (B,): the return and length of its first episode, and, for goal-reaching tasks, the goal distance
-    [m] at the episode's end (else None); ``qpos (T, nq)``: env 0's trajectory when recorded (else None); for
+    [m] at the episode's end (else None); ``trajectory``: env 0's episode when recorded (else None), as ``q``
+    rows ``(T, nq)`` for physics envs and :class:`~torchsim.envs.nav.video.NavFrame` s for navigation envs; for
     navigation tasks (which emit them), the episode's ``success`` (bool) and ``spl``."""
 
     ret: torch.Tensor
     length: torch.Tensor
     final_distance: torch.Tensor | None
-    qpos: np.ndarray | None
+    trajectory: np.ndarray | list | None
     success: torch.Tensor | None = None
     spl: torch.Tensor | None = None
 
@@ -129,7 +131,7 @@ class Evaluation(NamedTuple):
 def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False, seed: int | None = None,
              deterministic: bool = True) -> Evaluation:
     """Deterministic evaluation (or, not ``deterministic``, with sampled actions) of each env's first episode (at
-    most ``max_steps`` steps); with ``record``, env 0's ``q`` trajectory for a video. Finished envs keep stepping,
+    most ``max_steps`` steps); with ``record``, env 0's trajectory for a video (``video``). Finished envs keep stepping,
     masked out, so the batch stays fixed; the loop stops once every env has finished. With ``seed``, the episodes
     start from the same states at every call (drawn from a forked RNG, leaving the caller's stream alone), so
     successive evaluations compare policies, not start draws; a navigation env draws its episodes from its own
@@ -150,7 +152,8 @@ def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False, 
     distance = torch.full(env.batch_size, float("nan"), device=env.device) if goal_task else None
     success = torch.zeros(env.batch_size, dtype=torch.bool, device=env.device) if nav else None
     spl = torch.zeros(env.batch_size, device=env.device) if nav else None
-    qpos = [env.base_env.state.q[0].cpu()] if record else None
+    snapshot = (lambda: nav_video.snapshot(env.base_env, 0)) if nav else (lambda: env.base_env.state.q[0].cpu())
+    trajectory = [snapshot()] if record else None
     with set_exploration_type(ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM):
         for t in range(max_steps):
             td = env.step(policy(td))
@@ -162,12 +165,14 @@ def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False, 
                 success |= td["next", "success"].squeeze(-1) & alive
                 spl += td["next", "spl"].squeeze(-1) * alive
             if record and bool(alive[0]):
-                qpos.append(env.base_env.state.q[0].cpu())
+                trajectory.append(snapshot())
             alive &= ~td["next", "done"].squeeze(-1)
             if t % 10 == 9 and not alive.any():  # one host sync every 10 steps
                 break
             td = env.step_mdp(td)
-    return Evaluation(ret, length, distance, torch.stack(qpos).double().numpy() if record else None, success, spl)
+    if record and not nav:
+        trajectory = torch.stack(trajectory).double().numpy()
+    return Evaluation(ret, length, distance, trajectory, success, spl)
 
 
 def load_policy(ckpt: dict, env: TransformedEnv, device) -> ProbabilisticActor:
@@ -179,6 +184,18 @@ def load_policy(ckpt: dict, env: TransformedEnv, device) -> ProbabilisticActor:
     obs_norm(env).load_state_dict(ckpt["state"]["obs_norm"])
     obs_norm(env).freeze()
     return actor
+
+
+def video(env: TransformedEnv, env_name: str, trajectory, path: pathlib.Path) -> None:
+    """Write env 0's recorded ``trajectory`` (``evaluate(..., record=True)``) as the GIF ``path``: a navigation
+    env's map and depth view (``torchsim.envs.nav.video``, 10 frames/s), a physics env's bodies (``render_gif``)."""
+    if nav_policy.is_nav_env(env):
+        from torchsim.envs.video import save_gif
+
+        save_gif(nav_video.episode_frames(trajectory), path, fps=10)
+        log.info(f"video: {path}")
+    else:
+        render_gif(env_name, trajectory, env.base_env.dt, path)
 
 
 def render_gif(env_name: str, qpos: np.ndarray, dt: float, path: pathlib.Path, renderer: str = "torchsim",
@@ -385,8 +402,8 @@ class Run:
         plot_curves(self.history, self.out_dir / "curves.png", f"{self.cfg.algo.name} {self.cfg.env.name}")
         if self.cfg.video.enabled:
             self.sync_eval_norm()
-            qpos = evaluate(self.eval_env, self.actor, self.cfg.video.steps, record=True).qpos
-            render_gif(self.cfg.env.name, qpos, self.eval_env.base_env.dt, self.out_dir / "policy.gif")
+            trajectory = evaluate(self.eval_env, self.actor, self.cfg.video.steps, record=True).trajectory
+            video(self.eval_env, self.cfg.env.name, trajectory, self.out_dir / "policy.gif")
         self.summary = summary = {"env_steps": self.env_steps, "wall_s": round(self.wall, 1),
                    "env_steps_per_s": round(self.env_steps / max(self.wall, 1e-9), 1),
                    "final_eval_return": self.history["eval"][-1][2] if self.history["eval"] else None}

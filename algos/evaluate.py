@@ -2,9 +2,10 @@
 [episodes=16] [max_steps=N] [video=true] [device=cpu] [seed=N] [physics=torchsim|mujoco]``.
 
 Prints the deterministic policy's mean return and episode length over ``episodes`` envs (and, for goal-reaching
-tasks, the success rate and median final goal distance); ``seed`` fixes the episodes' start states (a run's
-own evaluations use its ``eval.seed``); ``video=true`` writes
-``eval.gif`` of env 0 next to the checkpoint's run dir. ``physics=mujoco`` runs the same task code on MuJoCo C's
+tasks, the success rate and median final goal distance; for navigation, success rate and SPL on the held-out
+layouts of ``env.eval_split``); ``seed`` fixes the episodes' start states (a run's own evaluations use its
+``eval.seed``); ``video=true`` writes ``eval.gif`` of env 0 next to the checkpoint's run dir (for navigation: the
+map from above beside the depth view). ``physics=mujoco`` runs the same task code on MuJoCo C's
 physics (``torchsim.mujoco_stepper``): a policy trained in torchsim, evaluated in MuJoCo (default: the physics it
 trained on).
 """
@@ -15,7 +16,7 @@ import sys
 import torch
 from omegaconf import OmegaConf
 
-from torchsim.algos.common import evaluate, load_policy, make_env, render_gif
+from torchsim.algos.common import evaluate, load_policy, make_env, video
 
 DEFAULTS = {"checkpoint": "???", "episodes": 16, "max_steps": None, "video": False, "device": "cpu", "seed": None,
             "physics": None}
@@ -39,9 +40,12 @@ def main(argv: list[str]) -> dict:
     if ev.final_distance is not None:
         result["success_rate"] = ev.success_rate(env.base_env.success_distance)
         result["final_distance_median"] = ev.final_distance.median().item()
+    if ev.spl is not None:
+        result["success_rate"] = ev.success.float().mean().item()
+        result["spl"] = ev.spl.mean().item()
     print(result)
     if args.video:
-        render_gif(cfg.env.name, ev.qpos, env.base_env.dt, pathlib.Path(args.checkpoint).parent.parent / "eval.gif")
+        video(env, cfg.env.name, ev.trajectory, pathlib.Path(args.checkpoint).parent.parent / "eval.gif")
     return result
 
 

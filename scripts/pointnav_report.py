@@ -2,10 +2,11 @@
 run's held-out evaluations' success and SPL, evaluation and training return, against env steps, wall-clock minutes
 on the top axis) as a PNG with the evaluations as a CSV next to it; and, with ``--episodes N``, a final evaluation
 of the checkpoint's policy on N held-out episodes (``env.eval_split``), with the most probable action and with
-sampled actions:
+sampled actions; with ``--video DIR``, GIFs of the most-probable-action policy's first successful and first failed
+held-out episodes (seeds 0, 1, ...; the map from above beside the depth view, ``torchsim.envs.nav.video``):
 
     python scripts/pointnav_report.py outputs/ppo_pointnav/main/checkpoints/last.pt docs/media/pointnav_training.png \
-        --episodes 256
+        --episodes 256 --video docs/media
 """
 
 import argparse
@@ -16,7 +17,7 @@ import numpy as np
 import torch
 from omegaconf import OmegaConf
 
-from torchsim.algos.common import evaluate, load_policy, make_env
+from torchsim.algos.common import evaluate, load_policy, make_env, video
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -29,6 +30,7 @@ def main():
     p.add_argument("--title", default=None)
     p.add_argument("--episodes", type=int, default=0, help="held-out episodes of the final evaluation (0: none)")
     p.add_argument("--seed", type=int, default=1, help="the final evaluation's episode seed")
+    p.add_argument("--video", default=None, help="folder for pointnav_success.gif and pointnav_failure.gif")
     args = p.parse_args()
     ckpt = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
     h, cfg = ckpt["history"], ckpt["cfg"]
@@ -62,6 +64,8 @@ def main():
           f"SPL {spl[-1, 2]:.3f} at {int(ev[-1, 0]):,} env steps")
     if args.episodes:
         final_evaluation(ckpt, args.episodes, args.seed)
+    if args.video:
+        videos(ckpt, pathlib.Path(args.video))
 
 
 def final_evaluation(ckpt: dict, episodes: int, seed: int) -> None:
@@ -76,6 +80,24 @@ def final_evaluation(ckpt: dict, episodes: int, seed: int) -> None:
               f"{r.ret.mean().item():.2f}, episode length {r.length.float().mean().item():.0f} "
               f"(trained {ckpt['counters']['env_steps']:,} env steps)")
 
+
+
+def videos(ckpt: dict, out_dir: pathlib.Path, max_seeds: int = 40) -> None:
+    cfg = OmegaConf.create(ckpt["cfg"])
+    env = make_env(cfg, 1, "cpu")
+    actor = load_policy(ckpt, env, "cpu")
+    wanted = {True: "pointnav_success.gif", False: "pointnav_failure.gif"}
+    for seed in range(max_seeds):
+        r = evaluate(env, actor, cfg.env.episode_length, record=True, seed=seed)
+        name = wanted.pop(bool(r.success[0]), None)
+        if name:
+            video(env, cfg.env.name, r.trajectory, out_dir / name)
+            print(f"{name}: held-out episode seed {seed}, {len(r.trajectory) - 1} steps, start geodesic "
+                  f"{r.trajectory[0].geodesic:.2f} m, end {r.trajectory[-1].geodesic:.2f} m, SPL {r.spl[0].item():.3f}")
+        if not wanted:
+            break
+    for name in wanted.values():
+        print(f"no {name} in {max_seeds} held-out episodes")
 
 if __name__ == "__main__":
     main()

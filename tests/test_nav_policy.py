@@ -2,6 +2,7 @@
 categorical policy that reads both depth and goal, the env as the recipe wraps it, evaluation's success and SPL, two
 PPO iterations through Hydra, and clear errors for bad configs."""
 
+import numpy as np
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -11,11 +12,13 @@ from torchrl.envs.utils import check_env_specs
 
 from test_train import QUIET, config
 from torchsim.algos.common import evaluate, make_env, make_eval_env
+from torchsim.algos.evaluate import main as evaluate_main
 from torchsim.algos.networks import make_actor, make_value
 from torchsim.algos.nav_policy import STOP_LOGIT_INIT, NavNet
 from torchsim.algos.train import run
 from torchsim.envs.nav import PointNav
 from torchsim.envs.nav.pointnav import SPLIT_SEEDS, STOP
+from torchsim.envs.nav.video import AGENT, episode_frames
 
 SMALL = ["env=pointnav", "env.num_layouts=4", "algo.num_envs=8", "algo.unroll=4", "algo.minibatches=2",
          "eval.episodes=4", "eval.max_steps=8", *QUIET]
@@ -89,11 +92,38 @@ def test_evaluation_counts_success_and_spl(cfg):
     assert torch.equal(result.length, again.length)
 
 
+def test_recorded_episode_video(cfg):
+    """``evaluate(record=True)`` on a navigation env keeps env 0's frames (reset + one per step) and the video
+    draws them: the agent's dot on the map where its position projects, the depth panel the env's depth image."""
+    env = make_env(cfg, 2, "cpu")
+    result = evaluate(env, lambda td: td.set("action", env.base_env.shortest_path_action()), 500, record=True,
+                      seed=5)
+    frames = result.trajectory
+    assert len(frames) == int(result.length[0]) + 1 and frames[-1].geodesic <= env.base_env.success_distance
+    panel = 256
+    images = episode_frames(frames, panel)
+    assert len(images) == len(frames) and images[0].shape == (panel + 16, 2 * panel + 4, 3)
+    for frame, image in ((frames[0], images[0]), (frames[-1], images[-1])):
+        agent = (image[:panel, :panel] == AGENT).all(-1)     # the dot and its heading tick
+        rows, cols = agent.nonzero()
+        px_per_m = panel / (frame.walls.shape[0] * frame.cell)
+        dot = (abs(cols - frame.pos[0] * px_per_m) <= 4.5) & (abs(rows - (panel - frame.pos[1] * px_per_m)) <= 4.5)
+        assert dot.sum() >= 40                               # a 9-pixel disc around the projected position
+    lut_order = images[0][:panel, panel + 4:].astype(int).sum(-1)   # magma_r: nearer is brighter
+    depth = np.kron(frames[0].depth, np.ones((panel // frames[0].depth.shape[0],) * 2))
+    assert depth.std() > 0.5 and np.corrcoef(depth.ravel(), lut_order.ravel())[0, 1] < -0.9
+
+
 def test_two_ppo_iterations_through_hydra(tmp_path):
     finished = run(config(*SMALL, "budget.env_steps=64", "logger=csv"), tmp_path)
     assert finished.iteration == 2 and finished.env_steps == 64
     assert len(finished.history["eval_success"]) == len(finished.history["eval_spl"]) == 2
     assert (tmp_path / "checkpoints" / "last.pt").is_file() and any((tmp_path / "logs").rglob("*spl*"))
+    # python -m torchsim.evaluate on the checkpoint: success and SPL on held-out layouts, and the episode's GIF
+    result = evaluate_main([f"checkpoint={tmp_path / 'checkpoints' / 'last.pt'}", "episodes=2", "max_steps=6",
+                            "video=true", "seed=0"])
+    assert result["env"] == "pointnav" and 0 <= result["success_rate"] <= 1 and 0 <= result["spl"] <= 1
+    assert (tmp_path / "eval.gif").stat().st_size > 0
 
 
 def test_bad_configs_fail_clearly(cfg, env):
