@@ -247,6 +247,7 @@ class Run:
         # rows (env_steps, wall_s, value); step_reward: the mean reward per env step of each iteration's batch
         self.history = {"train": [], "eval": [], "eval_success": [], "step_reward": []}
         self.recent = collections.deque(maxlen=cfg.recent_episodes)
+        self.recent_success = collections.deque(maxlen=cfg.recent_episodes)  # navigation: STOPs within reach
         self.next_eval = 0 if cfg.eval.at_start else cfg.eval.interval_steps
         if cfg.resume:
             self.load(cfg.resume)
@@ -271,11 +272,14 @@ class Run:
 
     # -- per iteration
     def record_batch(self, data) -> None:
-        """Count the batch's env steps and collect the returns of the episodes that ended in it."""
+        """Count the batch's env steps and collect the returns (and, for navigation, the successes) of the
+        episodes that ended in it."""
         self.env_steps += data.numel() * self.ranks.world_size
         done = data["next", "done"].squeeze(-1)
         returns = data["next", "episode_reward"].squeeze(-1)[done]
         self.recent.extend(returns.tolist())
+        if "success" in data["next"].keys():
+            self.recent_success.extend(data["next", "success"].squeeze(-1)[done].tolist())
         self.step_reward = data["next", "reward"].mean().item()
 
     def check_update(self, losses, grad_norm: torch.Tensor, minibatch) -> None:
@@ -312,11 +316,15 @@ class Run:
         if self.recent:
             metrics["train/return"] = recent
             self.history["train"].append((self.env_steps, self.wall, recent))
+        success = ""
+        if self.recent_success:
+            metrics["train/success_rate"] = rate = float(np.mean(self.recent_success))
+            success = f"  success {rate:4.0%}"
         self.history["step_reward"].append((self.env_steps, self.wall, self.step_reward))
         self.log(metrics)
         line = (f"[{self.cfg.algo.name} {self.cfg.env.name}] it {self.iteration:4d}  steps {self.env_steps:>11,d}  "
                 f"{self.unprinted_steps / max(self.unprinted_s, 1e-9):7.0f} steps/s  return {recent:8.2f}  "
-                f"reward/step {self.step_reward:7.3f}  {self.wall / 60:5.1f} min")
+                f"reward/step {self.step_reward:7.3f}{success}  {self.wall / 60:5.1f} min")
         eval_due = self.env_steps >= self.next_eval or self.finished()
         if eval_due:
             line += self.evaluate() + f" ({self.eval_s:.0f} s)"

@@ -118,6 +118,7 @@ def test_two_ppo_iterations_through_hydra(tmp_path):
     finished = run(config(*SMALL, "budget.env_steps=64", "logger=csv"), tmp_path)
     assert finished.iteration == 2 and finished.env_steps == 64
     assert len(finished.history["eval_success"]) == len(finished.history["eval_spl"]) == 2
+    assert len(finished.recent_success) == len(finished.recent)   # a success flag for each finished training episode
     assert (tmp_path / "checkpoints" / "last.pt").is_file() and any((tmp_path / "logs").rglob("*spl*"))
     # python -m torchsim.evaluate on the checkpoint: success and SPL on held-out layouts, and the episode's GIF
     result = evaluate_main([f"checkpoint={tmp_path / 'checkpoints' / 'last.pt'}", "episodes=2", "max_steps=6",
