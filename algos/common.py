@@ -61,7 +61,8 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     or in MuJoCo C if ``cfg.physics == "mujoco"`` (``torchsim.mujoco_stepper``: the same task code on MuJoCo's
     physics); ``like``: an env whose stepper (System and compiled step) this one shares, for any ``num_envs`` above
     1. A navigation task (``torchsim.envs.NAV_ENVS``, no physics) has its depth normalised per pixel instead and
-    draws its episodes from the layouts of ``cfg.env.split`` if ``train``, else of ``cfg.env.eval_split``."""
+    draws its episodes from the layouts of ``cfg.env.split`` if ``train``, else of ``cfg.env.eval_split``, and, for a
+    recurrent policy (``cfg.algo.policy_net.lstm``), holds its states (``nav_policy.recurrent_transforms``)."""
     physics = cfg.get("physics", "torchsim")  # checkpoints from before the key ran on torchsim
     if physics not in ("torchsim", "mujoco"):
         raise ValueError(f"physics must be 'torchsim' or 'mujoco', got {physics!r}")
@@ -85,6 +86,8 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     norm = RunningNorm(in_keys=normalised or ["observation"], decay=cfg.obs_norm_decay, eps=1e-4,
                        reduce_batch_dims=True)
     transforms = [norm, RewardSum(), StepCounter()]
+    if cfg.env.name in torchsim.envs.NAV_ENVS:  # a recurrent policy's states and episode-start markers (else none)
+        transforms += nav_policy.recurrent_transforms(cfg.algo.policy_net)
     if train:  # the losses learn from scaled_reward; reward (and episode_reward) stay the task's
         transforms.append(RewardScaling(0.0, cfg.algo.reward_scale, in_keys=["reward"], out_keys=["scaled_reward"]))
     return TransformedEnv(base, Compose(*transforms))

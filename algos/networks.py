@@ -128,15 +128,15 @@ def make_actor(env, cfg_net: DictConfig, device) -> ProbabilisticActor:
                               distribution_class=TanhNormal, return_log_prob=True)
 
 
-def make_value(env, cfg_net: DictConfig, device, with_action: bool) -> ValueOperator:
+def make_value(env, cfg_net: DictConfig, device, with_action: bool, actor=None) -> TensorDictModule:
     """V(observation) or, ``with_action``, Q(observation, action) (torchrl's MLP concatenates its inputs); with
     ``pixels``, a :class:`PixelNet` on the images and the vectors, unless the env emits ``privileged_state``: then an
     MLP on that (asymmetric actor-critic: in simulation the critic may read the state the policy has to see);
-    for a navigation env, ``nav_policy.make_value`` (V only)."""
+    for a navigation env, ``nav_policy.make_value`` (V only; on the trunk of ``actor`` if that is recurrent)."""
     if nav_policy.is_nav_env(env):
         if with_action:
             raise ValueError("navigation envs have discrete actions: train them with PPO (no Q-function)")
-        return nav_policy.make_value(env, cfg_net, device, make_head=mlp)
+        return nav_policy.make_value(env, cfg_net, device, make_head=mlp, actor=actor)
     act_dim = env.action_spec.shape[-1]
     spec = env.observation_spec
     if "pixels" in spec.keys() and "privileged_state" not in spec.keys():

@@ -2,7 +2,10 @@
 
 Each iteration collects ``num_envs x unroll`` steps with the stochastic policy, computes GAE advantages once (with
 the critic of the iteration's start, as CleanRL does), then runs ``epochs`` passes of ``minibatches`` Adam steps
-over the batch, drawn without replacement by a TorchRL replay buffer.
+over the batch, drawn without replacement by a TorchRL replay buffer. With a recurrent policy
+(``algo.policy_net.lstm``, navigation envs), the buffer's elements are the envs' ``(unroll,)`` sequences, so each
+minibatch holds whole sequences that GAE and the loss replay through the LSTM in recurrent mode, from the states
+stored at each sequence's first step.
 """
 
 import torch
@@ -10,10 +13,12 @@ from torch import nn
 from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, ReplayBuffer
 from torchrl.data.replay_buffers import SamplerWithoutReplacement
+from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
 from torchsim.algos.common import Run, make_env, make_eval_env, maybe_compile, obs_norm
+from torchsim.algos.nav_policy import is_recurrent
 from torchsim.algos.networks import make_actor, make_state_probe, make_value
 from torchsim.algos.distributed import Ranks
 from torchsim.algos.optim import make_optimizer, make_schedule
@@ -30,7 +35,8 @@ class PPO:
         num_envs = ranks.shard(a.num_envs)
         self.env = make_env(cfg, num_envs, device, train=True)
         self.actor = make_actor(self.env, a.policy_net, device)
-        self.critic = make_value(self.env, a.value_net, device, with_action=False)
+        self.critic = make_value(self.env, a.value_net, device, with_action=False, actor=self.actor)
+        self.recurrent = is_recurrent(self.actor)
         # several ranks standardise each minibatch's advantages over all of them (_epochs), one the loss does
         self.loss_module = ClipPPOLoss(self.actor, self.critic, clip_epsilon=a.clip_epsilon,
                                        entropy_coeff=a.entropy_coeff, critic_coeff=a.critic_coeff,
@@ -40,19 +46,25 @@ class PPO:
         self.params = [*self.loss_module.parameters(),
                        *(self.state_probe.readout.parameters() if self.state_probe is not None else ())]
         ranks.broadcast_([*self.params, *self.loss_module.buffers()])
+        # torch.vmap (GAE's call over the root and next steps) cannot run an LSTM's control flow
         self.gae = GAE(gamma=a.gamma, lmbda=a.gae_lambda, value_network=self.critic, average_gae=False,
-                       device=device)
+                       device=device, deactivate_vmap=self.recurrent)
         self.gae.set_keys(reward="scaled_reward")  # make_env's RewardScaling writes it beside the task's reward
         frames = num_envs * a.unroll
         self.optim = make_optimizer(self.params, a, frames * ranks.world_size)
         self.lr_schedule = make_schedule(self.optim, a, cfg.budget.env_steps, frames * ranks.world_size)
+        if self.recurrent and num_envs % a.minibatches:
+            raise ValueError(f"algo.minibatches ({a.minibatches}) must divide each rank's envs (num_envs / ranks = "
+                             f"{num_envs}) with a recurrent policy: its minibatches are whole per-env sequences")
         if frames % a.minibatches:
             raise ValueError(f"algo.minibatches ({a.minibatches}) must divide each rank's env steps per iteration "
                              f"(num_envs / ranks x unroll = {frames}): every minibatch has the loss graph's shape")
         self.collector = Collector(self.env, self.actor, frames_per_batch=frames, total_frames=-1, device=device,
                                    auto_register_policy_transforms=False)
-        self.batches = ReplayBuffer(storage=LazyTensorStorage(frames, device=device),
-                                    sampler=SamplerWithoutReplacement(), batch_size=frames // a.minibatches)
+        # elements: env steps, or with a recurrent policy the envs' (unroll,) sequences
+        elements = num_envs if self.recurrent else frames
+        self.batches = ReplayBuffer(storage=LazyTensorStorage(elements, device=device),
+                                    sampler=SamplerWithoutReplacement(), batch_size=elements // a.minibatches)
         self.loss_fn = maybe_compile(self.loss_module, cfg)
         self.updates = 0
         # what the loss reads once advantages are in; the minibatch buffer holds only these, since sampling indexes
@@ -74,9 +86,10 @@ class PPO:
         every optimiser step. Returns the last minibatch's loss terms, the last epoch's mean KL and the epochs
         run."""
         a = self.cfg.algo
-        with torch.no_grad():
+        with torch.no_grad(), set_recurrent_mode(True):  # an LSTM runs over the time dimension (no-op without)
             self.gae(data)
-        self.batches.extend(data.select(*self.loss_inputs).reshape(-1))
+        inputs = data.select(*self.loss_inputs)
+        self.batches.extend(inputs if self.recurrent else inputs.reshape(-1))
         # Once the first update has compiled the loss (checking every guard), later ones feed it minibatches of the
         # same shapes, dtypes and modules, so only the guards that tell cached graphs apart need to run: dynamo's
         # full check cost ~0.6 ms of a ~5 ms minibatch step (measured: update 730 -> 590 ms on the main job).

@@ -80,7 +80,7 @@ def policy_rollout(checkpoint: str, steps: int | None):
     env = make_env(cfg, 1, "cpu")
     actor = load_policy(ckpt, env, "cpu")
     ev = evaluate(env, actor, steps or cfg.eval.max_steps, record=True)
-    return ev.qpos, env.base_env.dt, ev.ret.item(), env.base_env, cfg.env.name
+    return ev.trajectory, env.base_env.dt, ev.ret.item(), env.base_env, cfg.env.name
 
 
 def bench(env, env_name: str, qpos: np.ndarray, dt: float, width: int, height: int, compile: bool = False) -> None:

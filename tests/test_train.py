@@ -76,7 +76,7 @@ def test_checkpoint_round_trip_and_resume(tmp_path):
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         assert torch.equal(trained.actor(obs.clone())["action"], actor(obs.clone())["action"])
     rng = torch.get_rng_state()  # seeded evaluations start from the same states, off the caller's RNG stream
-    runs = [evaluate(env, actor, 5, record=True, seed=seed).qpos for seed in (3, 3, 4)]
+    runs = [evaluate(env, actor, 5, record=True, seed=seed).trajectory for seed in (3, 3, 4)]
     assert np.array_equal(runs[0], runs[1]) and not np.array_equal(runs[0], runs[2])
     assert torch.equal(torch.get_rng_state(), rng)
     resumed = run(tiny("ppo", f"resume={tmp_path / 'checkpoints' / 'last.pt'}", "budget.env_steps=48"), tmp_path / "r")
