@@ -20,8 +20,9 @@ from torchsim.envs.nav import PointNav
 from torchsim.envs.nav.pointnav import SPLIT_SEEDS, STOP
 from torchsim.envs.nav.video import AGENT, episode_frames
 
+# the feed-forward networks (the recipe's LSTM: tests/test_nav_recurrent.py)
 SMALL = ["env=pointnav", "env.num_layouts=4", "algo.num_envs=8", "algo.unroll=4", "algo.minibatches=2",
-         "eval.episodes=4", "eval.max_steps=8", *QUIET]
+         "eval.episodes=4", "eval.max_steps=8", "algo.policy_net.lstm=0", *QUIET]
 
 
 @pytest.fixture(scope="module")
