@@ -71,6 +71,7 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
                                   episode_length=cfg.env.episode_length, num_layouts=cfg.env.num_layouts,
                                   split=cfg.env.split if train else cfg.env.eval_split, seed=cfg.seed)
         normalised = ["depth"]
+        recurrent = nav_policy.recurrent_transforms(cfg.algo.policy_net)  # states, episode starts (or none)
     else:
         if like is not None:
             stepper = like.base_env.stepper
@@ -83,11 +84,10 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
                                   episode_length=cfg.env.episode_length,
                                   stagger_episodes=train and cfg.stagger_episodes, stepper=stepper)
         normalised = [k for k in ("observation", "privileged_state") if k in base.observation_spec.keys()]
+        recurrent = []
     norm = RunningNorm(in_keys=normalised or ["observation"], decay=cfg.obs_norm_decay, eps=1e-4,
                        reduce_batch_dims=True)
-    transforms = [norm, RewardSum(), StepCounter()]
-    if cfg.env.name in torchsim.envs.NAV_ENVS:  # a recurrent policy's states and episode-start markers (else none)
-        transforms += nav_policy.recurrent_transforms(cfg.algo.policy_net)
+    transforms = [norm, RewardSum(), StepCounter(), *recurrent]
     if train:  # the losses learn from scaled_reward; reward (and episode_reward) stay the task's
         transforms.append(RewardScaling(0.0, cfg.algo.reward_scale, in_keys=["reward"], out_keys=["scaled_reward"]))
     return TransformedEnv(base, Compose(*transforms))

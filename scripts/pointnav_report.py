@@ -81,8 +81,9 @@ def final_evaluation(ckpt: dict, episodes: int, seed: int) -> None:
               f"(trained {ckpt['counters']['env_steps']:,} env steps)")
 
 
-
 def videos(ckpt: dict, out_dir: pathlib.Path, max_seeds: int = 40) -> None:
+    """GIFs of the checkpoint's first successful and first failed held-out episode (most probable action, episode
+    seeds 0, 1, ... up to ``max_seeds``), as ``pointnav_success.gif`` and ``pointnav_failure.gif`` in ``out_dir``."""
     cfg = OmegaConf.create(ckpt["cfg"])
     env = make_env(cfg, 1, "cpu")
     actor = load_policy(ckpt, env, "cpu")
@@ -98,6 +99,7 @@ def videos(ckpt: dict, out_dir: pathlib.Path, max_seeds: int = 40) -> None:
             break
     for name in wanted.values():
         print(f"no {name} in {max_seeds} held-out episodes")
+
 
 if __name__ == "__main__":
     main()
