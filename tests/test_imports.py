@@ -100,3 +100,16 @@ def test_the_cycle_finder_finds_cycles():
 def test_no_module_shadows_the_standard_library():
     names = {path.stem for folder in PACKAGES.values() for path in folder.rglob("*.py")}
     assert not names & sys.stdlib_module_names, names & sys.stdlib_module_names
+
+
+def test_pyproject_installs_every_package():
+    """A non-editable install (``pip install .``) ships only the packages pyproject names: every folder with an
+    ``__init__.py`` must be among them, or the installed ``torchsim.envs`` fails to import its subpackage."""
+    import tomllib
+
+    config = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]
+    folders = {name: ROOT / path for name, path in config["package-dir"].items()}
+    packages = {name for name, path in _modules().items() if path.name == "__init__.py"}
+    assert set(config["packages"]) == packages, set(config["packages"]) ^ packages
+    for package, folder in PACKAGES.items():  # the mapping the tests read is the one pyproject installs
+        assert folders.get(package, ROOT / package).resolve() == folder.resolve(), package
