@@ -47,11 +47,12 @@ def _panel(ax, rows: list[dict], metric: str, ylabel: str) -> None:
     ax.grid(True, which="both", alpha=0.3)
 
 
-def plot_model(name: str, rows: list[dict], metrics: tuple[str, ...], frame_skip: int, batch: int, path) -> None:
+def plot_model(name: str, rows: list[dict], metrics: tuple[str, ...], frame_skip: int, batch: int, threads: int,
+               path) -> None:
     """Write the model's chart to ``path``. Numbers next to torchsim points are substeps per model timestep; stars
     mark the env's default (green: torchsim, black: MuJoCo's own timestep and integrator); red crosses: diverged."""
     unit = f"env-steps/s ({frame_skip} timesteps each)" if frame_skip > 1 else "steps/s"
-    ylabel = f"{unit}, batch {batch}, 1 thread"
+    ylabel = f"{unit}, batch {batch}, {threads} thread{'s' if threads > 1 else ''}"
     fig, axes = plt.subplots(1, len(metrics), figsize=(6.5 * len(metrics), 5), squeeze=False)
     for ax, metric in zip(axes[0], metrics):
         _panel(ax, rows, metric, ylabel)

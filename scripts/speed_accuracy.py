@@ -23,10 +23,12 @@ env step) as the reference, MuJoCo at timestep / 10 with the MJCF's integrator (
 - ``anchor_gap_m``: torchsim's joint constraint violation, the largest joint-anchor separation seen at any env step
   of these runs (MuJoCo, in generalized coordinates, has none). ``diverged``: torchsim's divergence flag.
 
-Speed: ``steps_per_s`` = model timesteps simulated per second over ``--batch`` envs on one thread (``env_steps_per_s``
-= that / frame_skip); torchsim with a compiled ``torchsim.Stepper`` (a row graph bakes the substep length in, so each
-substep count builds its own), MuJoCo C with ``mujoco.rollout`` on one thread, same batch, same start, in the same run;
-median of ``--repeats``.
+Speed: ``steps_per_s`` = model timesteps simulated per second over each of ``--batches`` envs on ``--threads``
+threads (``env_steps_per_s`` = that / frame_skip); torchsim with a ``torchsim.Stepper`` at its default strategy (the
+step kernel for spring on CPU; a kernel bakes the substep length in, so each substep count builds its own), MuJoCo C
+with ``mujoco.rollout`` on as many threads, same batch, same start, in the same run; median of ``--repeats``. A
+point's errors do not depend on the batch: they are measured once and repeated in its row for each batch, and each
+batch gets its own chart and Pareto fronts.
 """
 
 import argparse
@@ -172,6 +174,7 @@ def mujoco_runs(model: Model, factor: int = 1, integrator: str | None = None) ->
 def torchsim_runs(stepper: torchsim.Stepper, model: Model, m: mujoco.MjModel):
     """All scenarios side by side in one batch of ACCURACY_BATCH envs: per scenario (q, root xpos) per env step, the
     largest anchor gap seen at any env step, and whether any env diverged."""
+    system = stepper.sys
     controls = model.controls(m)
     steps = max(len(c) for c in controls)
     batch = ACCURACY_BATCH
@@ -180,9 +183,9 @@ def torchsim_runs(stepper: torchsim.Stepper, model: Model, m: mujoco.MjModel):
         acts = controls[e % len(controls)]
         ctrl[:len(acts), e] = acts
     # one tensor per env step, not views of one: the compiled substep guards on a view's base and strides
-    ctrl = [torch.tensor(c, dtype=sys.dtype, device=sys.device) for c in ctrl]
-    q0, qd0 = (torch.tensor(np.tile(x, (batch, 1)), dtype=sys.dtype, device=sys.device) for x in model.start(m))
-    state = torchsim.init(sys, q0, qd0)
+    ctrl = [torch.tensor(c, dtype=system.dtype, device=system.device) for c in ctrl]
+    q0, qd0 = (torch.tensor(np.tile(x, (batch, 1)), dtype=system.dtype, device=system.device) for x in model.start(m))
+    state = torchsim.init(system, q0, qd0)
 
     states = [state]
     for k in range(steps):
@@ -191,18 +194,18 @@ def torchsim_runs(stepper: torchsim.Stepper, model: Model, m: mujoco.MjModel):
         states.append(state)
     # (env step, env) flattened into one batch: one kinematics call instead of one per env step
     history = torchsim.State(*(torch.cat(x) for x in zip(*states)))
-    roots = torchsim.mj_body_poses(sys, history.x_pos, history.x_quat)[0][:, 1].reshape(steps + 1, batch, 3)
+    roots = torchsim.mj_body_poses(system, history.x_pos, history.x_quat)[0][:, 1].reshape(steps + 1, batch, 3)
     qs = history.q.reshape(steps + 1, batch, -1)
     qs, roots = (x.transpose(0, 1).double().cpu().numpy() for x in (qs, roots))
     runs = [(qs[e, :len(c) + 1], roots[e, :len(c) + 1]) for e, c in enumerate(controls)]
     diverged = bool(state.diverged.any()) or not bool(torch.isfinite(state.q).all())
-    return runs, float(anchor_gap(sys, history).max()), diverged
+    return runs, float(anchor_gap(system, history).max()), diverged
 
 
 def errors(model: Model, runs: list, ref: list) -> dict:
     """The model's error measures of ``runs`` against ``ref`` (per scenario (q, root) trajectories)."""
     if model.contact_free:
-        diff = (runs[0][0][1:] - ref[0][0][1:] + np.pi) % (2 * np.pi) - np.pi  # torchsim wraps hinge angles
+        diff = runs[0][0][1:] - ref[0][0][1:]  # hinge angles are continuous in both engines
         return {"joint_rms_rad": float(np.sqrt(np.mean(diff**2))), "joint_max_rad": float(np.abs(diff).max())}
     (_, settle), (_, settle_ref) = runs[0], ref[0]
     (_, moved), (_, moved_ref) = runs[1], ref[1]
@@ -218,60 +221,62 @@ def random_controls(m: mujoco.MjModel, shape: tuple) -> np.ndarray:
 
 def one_step(stepper: torchsim.Stepper, m: mujoco.MjModel) -> None:
     """One step of ACCURACY_BATCH envs at qpos0."""
-    sys = stepper.sys
+    system = stepper.sys
     def zeros(n):
-        return torch.zeros(ACCURACY_BATCH, n, dtype=sys.dtype, device=sys.device)
+        return torch.zeros(ACCURACY_BATCH, n, dtype=system.dtype, device=system.device)
 
-    q0 = torch.tensor(np.tile(m.qpos0, (ACCURACY_BATCH, 1)), dtype=sys.dtype, device=sys.device)
-    stepper(torchsim.init(sys, q0, zeros(sys.nv)), zeros(sys.nu))
+    q0 = torch.tensor(np.tile(m.qpos0, (ACCURACY_BATCH, 1)), dtype=system.dtype, device=system.device)
+    stepper(torchsim.init(system, q0, zeros(system.nv)), zeros(system.nu))
 
 
 def torchsim_rate(stepper: torchsim.Stepper, model: Model, m: mujoco.MjModel, batch: int, repeats: int) -> float:
     """Model timesteps/s of ``stepper`` over ``batch`` envs from the model's start, random controls."""
-    sys = stepper.sys
-    q0, qd0 = (torch.tensor(np.tile(x, (batch, 1)), dtype=sys.dtype, device=sys.device) for x in model.start(m))
-    ctrl = torch.tensor(random_controls(m, (batch,)), dtype=sys.dtype, device=sys.device)
-    state = [torchsim.init(sys, q0, qd0)]
+    system = stepper.sys
+    q0, qd0 = (torch.tensor(np.tile(x, (batch, 1)), dtype=system.dtype, device=system.device) for x in model.start(m))
+    ctrl = torch.tensor(random_controls(m, (batch,)), dtype=system.dtype, device=system.device)
+    state = [torchsim.init(system, q0, qd0)]
 
     def run():
         state[0] = stepper(state[0], ctrl)
-        if sys.device.type == "cuda":
+        if system.device.type == "cuda":
             torch.cuda.synchronize()
 
     run()  # warm-up
     return median_rate(run, batch, repeats)
 
 
-def mujoco_rate(model: Model, factor: int, integrator: str, batch: int, repeats: int) -> float:
-    """Model timesteps/s of ``mujoco.rollout`` (one thread) at timestep / ``factor``: controls held per timestep."""
+def mujoco_rate(model: Model, factor: int, integrator: str, batch: int, args) -> float:
+    """Model timesteps/s of ``mujoco.rollout`` (``args.threads`` threads) at timestep / ``factor``: controls held per
+    timestep."""
     m = mujoco_model(model, factor, integrator)
     q0, qd0 = model.start(m)
     start = mujoco_start_states(m, np.tile(q0, (batch, 1)), np.tile(qd0, (batch, 1)))
     ctrl = random_controls(m, (batch, SPEED_STEPS)).repeat(factor, axis=1)
-    return mujoco_rollout_rate(m, start, ctrl, repeats) / factor
+    return mujoco_rollout_rate(m, start, ctrl, args.repeats, threads=args.threads) / factor
 
 
-def row(name: str, model: Model, engine: str, method: str, dtype: str, substeps: int, timestep: float,
+def row(name: str, model: Model, engine: str, method: str, dtype: str, substeps: int, timestep: float, batch: int,
         steps_per_s: float, errs: dict, args, **extra) -> dict:
     """One CSV row. ``substeps``: steps per model timestep (torchsim's substeps; MuJoCo's timestep factor)."""
     return dict(model=name, engine=engine, method=method, dtype=dtype, substeps=substeps, timestep_s=timestep,
-                h_s=timestep / substeps, frame_skip=model.frame_skip, batch=args.batch, threads=1,
+                h_s=timestep / substeps, frame_skip=model.frame_skip, batch=batch, threads=args.threads,
                 device=args.device if engine == "torchsim" else "cpu", steps_per_s=steps_per_s,
                 env_steps_per_s=steps_per_s / model.frame_skip, **errs, **extra)
 
 
 def mujoco_points(name: str, model: Model, ref: list, args) -> list[dict]:
-    """MuJoCo C's own points: each integrator at timestep / factor for each factor."""
+    """MuJoCo C's own points: each integrator at timestep / factor for each factor, timed at each batch."""
     points = [("Euler", 1)] if args.quick else [(i, f) for i in MUJOCO_INTEGRATORS for f in MUJOCO_FACTORS]
     rows = []
     for integrator, factor in points:
         t0 = time.perf_counter()
-        r = row(name, model, "mujoco", integrator, "float64", factor, mujoco_model(model).opt.timestep,
-                mujoco_rate(model, factor, integrator, args.batch, args.repeats),
-                errors(model, mujoco_runs(model, factor, integrator), ref), args,
-                default=integrator == "Euler" and factor == 1)
-        rows.append(r)
-        log(f"{describe(r)} ({time.perf_counter() - t0:.0f} s)")
+        errs = errors(model, mujoco_runs(model, factor, integrator), ref)
+        for batch in args.batches:
+            r = row(name, model, "mujoco", integrator, "float64", factor, mujoco_model(model).opt.timestep, batch,
+                    mujoco_rate(model, factor, integrator, batch, args), errs, args,
+                    default=integrator == "Euler" and factor == 1)
+            rows.append(r)
+            log(f"{describe(r)} ({time.perf_counter() - t0:.0f} s)")
     return rows
 
 
@@ -297,12 +302,14 @@ def torchsim_points(name: str, model: Model, ref: list, method: str, dtype: str,
         sys_ = base.replace(substeps=substeps)
         sub_stepper = stepper.for_system(sys_)  # one per substep count: a row graph bakes the substep length in
         runs, gap, diverged = torchsim_runs(sub_stepper, model, m)
-        r = row(name, model, "torchsim", method, dtype, substeps, base.timestep,
-                torchsim_rate(sub_stepper, model, m, args.batch, args.repeats), errors(model, runs, ref), args,
-                anchor_gap_m=gap, diverged=diverged, compiled=not args.eager, compile_s=compile_s,
-                default=method == "spring" and dtype == "float32" and substeps == default)
-        rows.append(r)
-        log(f"{describe(r)} ({time.perf_counter() - t0:.0f} s)")
+        errs = errors(model, runs, ref)
+        for batch in args.batches:
+            r = row(name, model, "torchsim", method, dtype, substeps, base.timestep, batch,
+                    torchsim_rate(sub_stepper, model, m, batch, args.repeats), errs, args, anchor_gap_m=gap,
+                    diverged=diverged, compiled=not args.eager, compile_s=compile_s, strategy=stepper.strategy,
+                    default=method == "spring" and dtype == "float32" and substeps == default)
+            rows.append(r)
+            log(f"{describe(r)} ({time.perf_counter() - t0:.0f} s)")
     if not args.eager:  # one graph per setting expected; more would mean recompiles (e.g. per substep length)
         log(f"{name}: {counters['stats']['unique_graphs']} substep graphs compiled so far for this model")
     return rows
@@ -311,7 +318,7 @@ def torchsim_points(name: str, model: Model, ref: list, method: str, dtype: str,
 def describe(r: dict) -> str:
     errs = ", ".join(f"{k} {r[k]:.2e}" for k in (*ERRORS[True], *ERRORS[False], "anchor_gap_m") if k in r)
     return (f"{r['model']:>11} {r['engine']:>8} {r['method']:>12} {r['dtype']:>7} substeps {r['substeps']:>2} "
-            f"h {r['h_s'] * 1e3:.3g} ms: {r['env_steps_per_s']:>10,.0f} env-steps/s, {errs}"
+            f"h {r['h_s'] * 1e3:.3g} ms, batch {r['batch']:>4}: {r['env_steps_per_s']:>10,.0f} env-steps/s, {errs}"
             + ("  DIVERGED" if r.get("diverged") else "") + ("  [default]" if r["default"] else ""))
 
 
@@ -341,9 +348,10 @@ def read_csv(path: Path) -> list[dict]:
 
 
 def merge(old: list[dict], new: list[dict]) -> list[dict]:
-    """``old`` with the points ``new`` measured again replaced, in model, engine, method, dtype, substeps order."""
+    """``old`` with the points ``new`` measured again replaced, in model, batch, engine, method, dtype, substeps
+    order."""
     def key(r):
-        return (list(MODELS).index(r["model"]), r["engine"], r["method"], r["dtype"], r["substeps"])
+        return (list(MODELS).index(r["model"]), -r["batch"], r["engine"], r["method"], r["dtype"], r["substeps"])
 
     return sorted({key(r): r for r in old + new}.values(), key=key)
 
@@ -357,14 +365,17 @@ def write_csv(rows: list[dict], path: Path) -> None:
 
 
 def chart(name: str, rows: list[dict], args) -> None:
-    """Mark the model's Pareto fronts in ``rows`` (``pareto_<metric>`` columns) and write its chart."""
-    model, model_rows = MODELS[name], [r for r in rows if r["model"] == name]
-    for metric in ERRORS[model.contact_free]:
-        front = pareto(model_rows, metric)
-        for i, r in enumerate(model_rows):
-            r[f"pareto_{metric}"] = i in front
-    plot_model(name, model_rows, ERRORS[model.contact_free], model.frame_skip, model_rows[0]["batch"],
-               args.out / f"speed_accuracy_{name}.png")
+    """Per batch size: mark the model's Pareto fronts in ``rows`` (``pareto_<metric>`` columns) and write its chart,
+    ``speed_accuracy_<model>_b<batch>.png``."""
+    model = MODELS[name]
+    for batch in sorted({r["batch"] for r in rows if r["model"] == name}, reverse=True):
+        batch_rows = [r for r in rows if r["model"] == name and r["batch"] == batch]
+        for metric in ERRORS[model.contact_free]:
+            front = pareto(batch_rows, metric)
+            for i, r in enumerate(batch_rows):
+                r[f"pareto_{metric}"] = i in front
+        plot_model(name, batch_rows, ERRORS[model.contact_free], model.frame_skip, batch, batch_rows[0]["threads"],
+                   args.out / f"speed_accuracy_{name}_b{batch}.png")
 
 
 def parse_args():
@@ -374,7 +385,8 @@ def parse_args():
     p.add_argument("--methods", nargs="+", default=None, choices=["spring", "xpbd"],
                    help="with --dtypes: sweep these combinations instead of each model's settings")
     p.add_argument("--dtypes", nargs="+", default=None, choices=list(DTYPES))
-    p.add_argument("--batch", type=int, default=256, help="envs per timed step")
+    p.add_argument("--batches", type=int, nargs="+", default=[4096, 256], help="envs per timed step (one chart each)")
+    p.add_argument("--threads", type=int, default=2, help="threads of both engines (torch's, mujoco.rollout's)")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--eager", action="store_true", help="time torchsim eagerly (no compiles)")
@@ -390,14 +402,14 @@ def parse_args():
     args = p.parse_args()
     args.models = args.models or (["pendulum", "ant"] if args.quick else list(MODELS))
     if args.quick:
-        args.methods, args.dtypes, args.eager, args.repeats = ["spring"], ["float32"], True, 1
+        args.methods, args.dtypes, args.eager, args.repeats, args.batches = ["spring"], ["float32"], True, 1, [256]
     args.out = Path(args.out or ("/tmp/speed_accuracy" if args.quick else REPO / "docs"))
     return args
 
 
 def main():
     args = parse_args()
-    torch.set_num_threads(1)  # one thread for both engines; 2 threads stall on the shared 2-core VM
+    torch.set_num_threads(args.threads)
     torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
     args.out.mkdir(parents=True, exist_ok=True)
     csv_path = args.out / "speed_accuracy.csv"
@@ -407,8 +419,8 @@ def main():
             chart(name, rows, args)
         write_csv(rows, csv_path)
         return
-    log(f"torch {torch.__version__}, mujoco {mujoco.__version__}, {args.device}, {os.cpu_count()} cores, 1 thread, "
-        f"batch {args.batch}, {'eager' if args.eager else 'compiled substeps'}")
+    log(f"torch {torch.__version__}, mujoco {mujoco.__version__}, {args.device}, {os.cpu_count()} cores, "
+        f"{args.threads} threads, batches {args.batches}, {'eager' if args.eager else 'default strategy'}")
     start, rows = time.perf_counter(), read_csv(csv_path) if args.merge and csv_path.exists() else []
     for name in args.models:
         torch._dynamo.reset()  # each model compiles its own substep graphs
