@@ -69,7 +69,9 @@ def main():
     args = parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
+    for limit in ("cache_size_limit", "recompile_limit"):  # torch 2.13 counts recompiles in the second
+        if hasattr(torch._dynamo.config, limit):
+            setattr(torch._dynamo.config, limit, max(getattr(torch._dynamo.config, limit), 64))
     log(f"torch {torch.__version__}, mujoco {mujoco.__version__}, {torch.get_num_threads()} torch threads, "
         f"{os.cpu_count()} cores; float32 CPU; {args.steps} env steps x {args.repeats} repeats (median)")
     rows = []

@@ -378,6 +378,28 @@ def chart(name: str, rows: list[dict], args) -> None:
                    args.out / f"speed_accuracy_{name}_b{batch}.png")
 
 
+def defaults_table(rows: list[dict]) -> str:
+    """Markdown: per model and batch, torchsim's default point beside MuJoCo's (Euler at the model's timestep), their
+    speed ratio, and whether torchsim's default is on each Pareto front (run ``chart`` first)."""
+    lines = ["| model | batch | torchsim default: env-steps/s, errors | MuJoCo default: env-steps/s, errors | "
+             "torchsim / MuJoCo speed | torchsim default on the front |", "|---|---|---|---|---|---|"]
+    for name, model in MODELS.items():
+        for batch in sorted({r["batch"] for r in rows if r["model"] == name}, reverse=True):
+            found = {r["engine"]: r for r in rows if r["model"] == name and r["batch"] == batch and r["default"]}
+            if len(found) < 2:
+                continue
+            ours, theirs = found["torchsim"], found["mujoco"]
+            metrics = ERRORS[model.contact_free]
+
+            def cell(r):
+                return f"{r['env_steps_per_s']:,.0f}; " + ", ".join(f"{r[m]:.2g}" for m in metrics)
+
+            front = ", ".join(f"{m}: {'yes' if ours.get(f'pareto_{m}') else 'no'}" for m in metrics)
+            lines.append(f"| {name} | {batch} | {cell(ours)} | {cell(theirs)} | "
+                         f"{ours['env_steps_per_s'] / theirs['env_steps_per_s']:.2f} | {front} |")
+    return "\n".join(lines)
+
+
 def parse_args():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", nargs="+", default=None, choices=list(MODELS), help="default: all (--quick: "
@@ -410,7 +432,9 @@ def parse_args():
 def main():
     args = parse_args()
     torch.set_num_threads(args.threads)
-    torch._dynamo.config.cache_size_limit = max(torch._dynamo.config.cache_size_limit, 64)
+    for limit in ("cache_size_limit", "recompile_limit"):  # torch 2.13 counts recompiles in the second
+        if hasattr(torch._dynamo.config, limit):
+            setattr(torch._dynamo.config, limit, max(getattr(torch._dynamo.config, limit), 64))
     args.out.mkdir(parents=True, exist_ok=True)
     csv_path = args.out / "speed_accuracy.csv"
     if args.replot:
@@ -418,6 +442,7 @@ def main():
         for name in dict.fromkeys(r["model"] for r in rows):
             chart(name, rows, args)
         write_csv(rows, csv_path)
+        log(defaults_table(rows))
         return
     log(f"torch {torch.__version__}, mujoco {mujoco.__version__}, {args.device}, {os.cpu_count()} cores, "
         f"{args.threads} threads, batches {args.batches}, {'eager' if args.eager else 'default strategy'}")
@@ -438,6 +463,7 @@ def main():
         write_csv(rows, csv_path)  # after every model, so a stopped run keeps its rows
         log(f"{name} done at {(time.perf_counter() - start) / 60:.1f} min")
     minutes = (time.perf_counter() - start) / 60
+    log(defaults_table(rows))
     log(f"wrote {args.out}/speed_accuracy.csv and {len(args.models)} charts in {minutes:.1f} min")
 
 
