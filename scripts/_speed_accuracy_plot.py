@@ -7,8 +7,8 @@ matplotlib.use("Agg")  # files only, no display
 import matplotlib.pyplot as plt
 import numpy as np
 
-METHOD_COLOURS = {"spring": "tab:blue", "xpbd": "tab:orange", "Euler": "black", "implicitfast": "tab:gray",
-                  "RK4": "tab:brown"}
+METHOD_COLOURS = {"spring": "tab:blue", "xpbd": "tab:orange", "spring_soft": "tab:purple", "Euler": "black",
+                  "implicitfast": "tab:gray", "RK4": "tab:brown"}
 DTYPE_MARKERS = {"float32": "o", "float64": "s"}
 LABELS = {"joint_rms_rad": "joint-angle RMS error [rad]", "joint_max_rad": "max joint-angle error [rad]",
           "settle_err_m": "settled root height error [m]", "root_err_m": "max root position error, 0.25 s [m]"}

@@ -3,6 +3,8 @@ MuJoCo's integrator x timestep, each point's throughput next to its error agains
 
     python scripts/speed_accuracy.py            # full sweep: docs/speed_accuracy.csv + PNGs (read in the .md)
     python scripts/speed_accuracy.py --quick    # smoke run (2 models, 1 setting, eager): /tmp/speed_accuracy
+    python scripts/speed_accuracy.py --models ant --methods spring_soft --dtypes float32 --merge --no-mujoco
+                                                # add spring with MuJoCo's soft contacts (load_mjcf's contact_model)
 
 Models: ``pendulum`` (the tests' triple pendulum, 1 ms, a +-2 N m motor on each hinge), ``ur5e``
 (envs/assets/ur5e.urdf through torchsim's URDF translation, armature 0.1, 2 ms), both with contacts disabled, and
@@ -64,6 +66,9 @@ MUJOCO_INTEGRATORS = {"Euler": mujoco.mjtIntegrator.mjINT_EULER, "RK4": mujoco.m
                       "implicitfast": mujoco.mjtIntegrator.mjINT_IMPLICITFAST}
 MUJOCO_FACTORS = (1, 2, 4)  # MuJoCo points at timestep / factor
 DTYPES = {"float32": torch.float32, "float64": torch.float64}
+# torchsim's series, each a load_mjcf setting: the two methods, and spring with MuJoCo's soft contact normal
+LOAD_OPTIONS = {"spring": dict(method="spring"), "xpbd": dict(method="xpbd"),
+                "spring_soft": dict(method="spring", contact_model="soft")}
 ERRORS = {True: ("joint_rms_rad", "joint_max_rad"), False: ("settle_err_m", "root_err_m")}  # by contact_free
 SPEED_STEPS = 20  # model timesteps per timed MuJoCo rollout
 # Envs per accuracy run (the scenarios, repeated): a size no model dimension has, since the compiler gives dims of
@@ -285,7 +290,7 @@ def torchsim_points(name: str, model: Model, ref: list, method: str, dtype: str,
     m = mujoco_model(model)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        base = torchsim.load_mjcf(model.mjcf, method=method, dtype=DTYPES[dtype], device=args.device)
+        base = torchsim.load_mjcf(model.mjcf, dtype=DTYPES[dtype], device=args.device, **LOAD_OPTIONS[method])
     default = model.default_substeps or base.substeps
     one_step(torchsim.Stepper(base, "eager"), m)  # eager first: fills torchsim.spatial's per-dtype constant
     # tables, which a compiled graph traced before they exist guards on, and would be compiled a second time
@@ -404,7 +409,7 @@ def parse_args():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", nargs="+", default=None, choices=list(MODELS), help="default: all (--quick: "
                    "pendulum and ant)")
-    p.add_argument("--methods", nargs="+", default=None, choices=["spring", "xpbd"],
+    p.add_argument("--methods", nargs="+", default=None, choices=list(LOAD_OPTIONS),
                    help="with --dtypes: sweep these combinations instead of each model's settings")
     p.add_argument("--dtypes", nargs="+", default=None, choices=list(DTYPES))
     p.add_argument("--batches", type=int, nargs="+", default=[4096, 256], help="envs per timed step (one chart each)")
