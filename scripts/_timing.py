@@ -10,6 +10,16 @@ import mujoco.rollout
 import numpy as np
 
 
+def allow_recompiles(limit: int = 64) -> None:
+    """Let dynamo compile a function up to ``limit`` times (a benchmark's batch sizes, substep counts and models):
+    torch 2.13 checks ``recompile_limit``, older releases ``cache_size_limit``."""
+    import torch
+
+    for name in ("cache_size_limit", "recompile_limit"):
+        if hasattr(torch._dynamo.config, name):
+            setattr(torch._dynamo.config, name, max(getattr(torch._dynamo.config, name), limit))
+
+
 def emit_table(table: str, out: str | None, log: Callable[[str], None] = print) -> None:
     """Show a markdown ``table`` and, given a path ``out``, write it there too."""
     log(table)

@@ -24,7 +24,7 @@ from tensordict import TensorDict
 
 import torchsim
 import torchsim.envs
-from _timing import emit_table, mujoco_rollout_rate, mujoco_start_states
+from _timing import allow_recompiles, emit_table, mujoco_rollout_rate, mujoco_start_states
 
 
 def parse_args():
@@ -69,9 +69,7 @@ def main():
     args = parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
-    for limit in ("cache_size_limit", "recompile_limit"):  # torch 2.13 counts recompiles in the second
-        if hasattr(torch._dynamo.config, limit):
-            setattr(torch._dynamo.config, limit, max(getattr(torch._dynamo.config, limit), 64))
+    allow_recompiles()
     log(f"torch {torch.__version__}, mujoco {mujoco.__version__}, {torch.get_num_threads()} torch threads, "
         f"{os.cpu_count()} cores; float32 CPU; {args.steps} env steps x {args.repeats} repeats (median)")
     rows = []

@@ -91,6 +91,7 @@ import torch  # noqa: E402
 
 import torchsim  # noqa: E402
 import torchsim.pipeline  # noqa: E402
+from _timing import allow_recompiles  # noqa: E402
 
 
 def log(msg=""):
@@ -258,10 +259,7 @@ def bench_mujoco(m, q, qd, ctrl, nstep: int) -> dict:
 
 # ----------------------------------------------------------------------------------------------- torch.compile
 def configure_dynamo():
-    cfg = torch._dynamo.config
-    for name in ("cache_size_limit", "recompile_limit"):
-        if hasattr(cfg, name):
-            setattr(cfg, name, max(getattr(cfg, name), 64))
+    allow_recompiles()
     if ARGS.simdlen:
         torch._inductor.config.cpp.simdlen = ARGS.simdlen
 

@@ -58,7 +58,7 @@ REPO = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(REPO / "scripts"), str(REPO / "tests")]
 import check_models
 from _speed_accuracy_plot import plot_model
-from _timing import median_rate, mujoco_rollout_rate, mujoco_start_states
+from _timing import allow_recompiles, median_rate, mujoco_rollout_rate, mujoco_start_states
 from test_mujoco_reference import TRIPLE
 
 REFERENCE_FACTOR = 10  # the reference runs at timestep / 10
@@ -272,12 +272,12 @@ def row(name: str, model: Model, engine: str, method: str, dtype: str, substeps:
 def mujoco_points(name: str, model: Model, ref: list, args) -> list[dict]:
     """MuJoCo C's own points: each integrator at timestep / factor for each factor, timed at each batch."""
     points = [("Euler", 1)] if args.quick else [(i, f) for i in MUJOCO_INTEGRATORS for f in MUJOCO_FACTORS]
-    rows = []
+    rows, timestep = [], mujoco_model(model).opt.timestep
     for integrator, factor in points:
         t0 = time.perf_counter()
         errs = errors(model, mujoco_runs(model, factor, integrator), ref)
         for batch in args.batches:
-            r = row(name, model, "mujoco", integrator, "float64", factor, mujoco_model(model).opt.timestep, batch,
+            r = row(name, model, "mujoco", integrator, "float64", factor, timestep, batch,
                     mujoco_rate(model, factor, integrator, batch, args), errs, args,
                     default=integrator == "Euler" and factor == 1)
             rows.append(r)
@@ -437,9 +437,7 @@ def parse_args():
 def main():
     args = parse_args()
     torch.set_num_threads(args.threads)
-    for limit in ("cache_size_limit", "recompile_limit"):  # torch 2.13 counts recompiles in the second
-        if hasattr(torch._dynamo.config, limit):
-            setattr(torch._dynamo.config, limit, max(getattr(torch._dynamo.config, limit), 64))
+    allow_recompiles()
     args.out.mkdir(parents=True, exist_ok=True)
     csv_path = args.out / "speed_accuracy.csv"
     if args.replot:
