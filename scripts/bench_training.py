@@ -9,6 +9,9 @@
 4. learner: ``PPO.update`` on one collected batch (GAE, then epochs x minibatches of Adam steps), samples/s;
 5. whole loop: collector and learner in turn, as ``torchsim.train`` runs them.
 
+``--profile-collector N`` then profiles N collector batches (cProfile, by cumulative time): where the env's and
+policy's share of the collector goes (resets, normaliser, TorchRL's bookkeeping).
+
 ``--learner-variant "key=value ..."`` also times ``PPO.update`` of a second PPO built with those overrides on the
 same collected batch, alternating with the first (e.g. ``"algo.value_net.bf16=true algo.policy_net.bf16=true"``).
 
@@ -17,7 +20,9 @@ compile it asks for happens before timing. Each figure is the median of ``--repe
 """
 
 import argparse
+import cProfile
 import logging
+import pstats
 import statistics
 
 import torch
@@ -33,6 +38,8 @@ def main():
     p.add_argument("overrides", nargs="*", help="config overrides, as for python -m torchsim.train")
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--learner-variant", default=None, help="overrides of a second learner, timed beside the first")
+    p.add_argument("--profile-collector", type=int, default=0, metavar="N",
+                   help="then profile N collector batches (cProfile, top 40 by cumulative time)")
     args = p.parse_args()
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose(config_name="config", overrides=args.overrides)
@@ -82,6 +89,10 @@ def main():
     print("\n| stage | env-steps/s | of engine alone |\n|---|---|---|")
     for name, rate in rows.items():
         print(f"| {name} | {rate:,.0f} | {rate / engine_rate:.2f} |")
+    if args.profile_collector:
+        profile = cProfile.Profile()
+        profile.runcall(lambda: [next(batches) for _ in range(args.profile_collector)])
+        pstats.Stats(profile).sort_stats("cumulative").print_stats(40)
     ppo.collector.shutdown()
 
 

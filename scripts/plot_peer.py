@@ -1,7 +1,11 @@
-"""Chart the main job beside Brax's PPO: evaluation return against wall clock and against env steps.
+"""Chart training runs side by side: evaluation return against wall clock and against env steps.
 
     python scripts/plot_peer.py --torchsim-log outputs/ppo_ant/<run>/train.log --torchsim-start 11:52:39 \
         --brax docs/logs/brax_ppo_ant.csv --out docs/training_peer_brax_ant.png
+    python scripts/plot_peer.py --run "torchsim physics=docs/logs/a.log@05:09:35" \
+        --run "MuJoCo physics=docs/logs/b.log@04:49:00" --title "Hopper, PPO" --target 2000 --out hopper.png
+
+``--run LABEL=LOG@HH:MM:SS`` adds any ``python -m torchsim.train`` console log (repeatable).
 
 ``--torchsim-start`` is the wall-clock time (HH:MM:SS) the ``python -m torchsim.train`` process started (e.g.
 ``ps -o lstart``), so both curves count from their process's start, compiling included. The Brax CSV comes from
@@ -39,14 +43,28 @@ def brax_evals(csv_path):
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--torchsim-log", required=True)
-    p.add_argument("--torchsim-start", required=True, help="HH:MM:SS the training process started")
-    p.add_argument("--brax", required=True)
+    p.add_argument("--torchsim-log")
+    p.add_argument("--torchsim-start", help="HH:MM:SS the training process started")
+    p.add_argument("--brax", help="Brax's evaluations (scripts/brax_peer_ppo_ant.py's CSV)")
+    p.add_argument("--run", action="append", default=[], metavar="LABEL=LOG@HH:MM:SS",
+                   help="another torchsim.train console log, started at HH:MM:SS (repeatable)")
     p.add_argument("--target", type=float, default=4000.0)
+    p.add_argument("--title", default="Ant, PPO, 2 CPU cores, same machine and session")
     p.add_argument("--out", default="training_peer_brax_ant.png")
     args = p.parse_args()
-    runs = {"torchsim PPO (python -m torchsim.train)": torchsim_evals(args.torchsim_log, args.torchsim_start),
-            "Brax PPO (brax 0.14.2, JAX CPU, spring)": brax_evals(args.brax)}
+    runs = {}
+    if args.torchsim_log:
+        runs["torchsim PPO (python -m torchsim.train)"] = torchsim_evals(args.torchsim_log, args.torchsim_start)
+    if args.brax:
+        runs["Brax PPO (brax 0.14.2, JAX CPU, spring)"] = brax_evals(args.brax)
+    for run in args.run:
+        label, sep, rest = run.rpartition("=")
+        log_path, at, start = rest.rpartition("@")
+        if not (sep and at):
+            raise SystemExit(f"--run wants LABEL=LOG@HH:MM:SS, got {run!r}")
+        runs[label] = torchsim_evals(log_path, start)
+    if not runs:
+        raise SystemExit("nothing to chart: give --torchsim-log, --brax or --run")
 
     import matplotlib
 
@@ -68,7 +86,7 @@ def main():
         ax.set_ylabel("deterministic eval return")
         ax.grid(alpha=0.3)
         ax.legend()
-    fig.suptitle("Ant, PPO, 2 CPU cores, same machine and session")
+    fig.suptitle(args.title)
     fig.tight_layout()
     fig.savefig(args.out, dpi=100)
     print(f"wrote {args.out}")
