@@ -54,6 +54,8 @@ def main():
     args = p.parse_args()
     runs = {}
     if args.torchsim_log:
+        if not args.torchsim_start:
+            raise SystemExit("--torchsim-log needs --torchsim-start (HH:MM:SS the process started)")
         runs["torchsim PPO (python -m torchsim.train)"] = torchsim_evals(args.torchsim_log, args.torchsim_start)
     if args.brax:
         runs["Brax PPO (brax 0.14.2, JAX CPU, spring)"] = brax_evals(args.brax)
