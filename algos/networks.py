@@ -4,9 +4,9 @@ pixels, navigation: ``torchsim.algos.nav_policy``)."""
 
 import torch
 from omegaconf import DictConfig
-from tensordict.nn import TensorDictModule
+from tensordict.nn import AddStateIndependentNormalScale, TensorDictModule
 from torch import nn
-from torchrl.modules import MLP, NormalParamExtractor, ProbabilisticActor, TanhNormal, ValueOperator
+from torchrl.modules import MLP, IndependentNormal, NormalParamExtractor, ProbabilisticActor, TanhNormal, ValueOperator
 
 from torchsim.algos import nav_policy
 
@@ -108,24 +108,38 @@ def _inputs(env) -> tuple[list, int]:
     return keys, sum(env.observation_spec[k].shape[-1] for k in keys)
 
 
+#: ``cfg_net.distribution``: the action distribution of a continuous policy. ``normal`` leaves the env to clip
+#: its samples to the action bounds (CleanRL's continuous PPO).
+DISTRIBUTIONS = {"tanh_normal": TanhNormal, "normal": IndependentNormal}
+
+
 def make_actor(env, cfg_net: DictConfig, device) -> ProbabilisticActor:
-    """Tanh-squashed Gaussian policy on ``observation``; its deterministic action is ``tanh(loc)``. An env with
-    ``pixels`` gets a :class:`PixelNet` on the images and ``observation`` (if it emits one); a navigation env a
+    """Gaussian policy on ``observation``: tanh-squashed (``cfg_net.distribution``, default ``tanh_normal``; its
+    deterministic action is ``tanh(loc)``) or plain (``normal``), with a scale the network outputs per state or, if
+    ``cfg_net.scale`` is ``parameter``, one learned per action dimension whatever the state (initially 1). An env
+    with ``pixels`` gets a :class:`PixelNet` on the images and ``observation`` (if it emits one); a navigation env a
     categorical policy on depth and goal (``nav_policy.make_actor``)."""
     if nav_policy.is_nav_env(env):
         return nav_policy.make_actor(env, cfg_net, device, make_head=mlp)
     act_dim = env.action_spec.shape[-1]
+    distribution, scale = cfg_net.get("distribution", "tanh_normal"), cfg_net.get("scale", "state")
+    if distribution not in DISTRIBUTIONS or scale not in ("state", "parameter"):
+        raise ValueError(f"policy_net.distribution must be one of {sorted(DISTRIBUTIONS)} (got {distribution!r}) "
+                         f"and policy_net.scale 'state' or 'parameter' (got {scale!r})")
+    if scale == "state":
+        out_features, post = 2 * act_dim, NormalParamExtractor(scale_lb=1e-3)
+    else:
+        out_features, post = act_dim, AddStateIndependentNormalScale(act_dim, scale_lb=1e-3, device=device)
     if "pixels" in env.observation_spec.keys():
         keys, dim = _inputs(env)
-        net = PixelNet(env.observation_spec["pixels"], dim, 2 * act_dim, cfg_net, device,
-                       post=NormalParamExtractor(scale_lb=1e-3))
+        net = PixelNet(env.observation_spec["pixels"], dim, out_features, cfg_net, device, post=post)
         module = TensorDictModule(net, in_keys=["pixels", *keys], out_keys=["loc", "scale"])
     else:
         obs_dim = env.observation_spec["observation"].shape[-1]
-        net = nn.Sequential(mlp(obs_dim, 2 * act_dim, cfg_net, device), NormalParamExtractor(scale_lb=1e-3))
+        net = nn.Sequential(mlp(obs_dim, out_features, cfg_net, device), post)
         module = TensorDictModule(net, in_keys=["observation"], out_keys=["loc", "scale"])
     return ProbabilisticActor(module, in_keys=["loc", "scale"], spec=env.action_spec_unbatched,
-                              distribution_class=TanhNormal, return_log_prob=True)
+                              distribution_class=DISTRIBUTIONS[distribution], return_log_prob=True)
 
 
 def make_value(env, cfg_net: DictConfig, device, with_action: bool, actor=None) -> TensorDictModule:

@@ -16,7 +16,8 @@ policy's share of the collector goes (resets, normaliser, TorchRL's bookkeeping)
 same collected batch, alternating with the first (e.g. ``"algo.value_net.bf16=true algo.policy_net.bf16=true"``).
 
 Hydra-style ``key=value`` overrides select the config (the same composition as ``python -m torchsim.train``); the
-compile it asks for happens before timing. Each figure is the median of ``--repeats`` timings.
+compile it asks for happens before timing. Each figure is the median of ``--repeats`` timings; in each repeat the
+stages take turns, each timed over whole batches for at least ``--seconds``.
 """
 
 import argparse
@@ -37,6 +38,7 @@ def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("overrides", nargs="*", help="config overrides, as for python -m torchsim.train")
     p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--seconds", type=float, default=2.0, help="least time per stage and repeat (whole batches)")
     p.add_argument("--learner-variant", default=None, help="overrides of a second learner, timed beside the first")
     p.add_argument("--profile-collector", type=int, default=0, metavar="N",
                    help="then profile N collector batches (cProfile, top 40 by cumulative time)")
@@ -72,23 +74,27 @@ def main():
     data = next(batches)  # compiles the step (and, with it, everything the first batch needs)
     engine()
     ppo.update(data.clone(), lambda *args: None)  # compiles the loss
-    def rate(fn):  # one call per repeat: a call is already a whole batch
-        return median_rate(fn, frames, args.repeats, min_seconds=0)
-
-    rows = {"engine alone (env.stepper)": rate(engine), "env alone (env.step + transforms)": rate(env_steps),
-            "collector (env + policy)": rate(lambda: next(batches)),
-            "learner (PPO.update)": rate(lambda: ppo.update(data.clone(), lambda *args: None))}
-
     def iteration():
         ppo.update(next(batches), lambda *args: None)
 
-    rows["whole loop (collector + learner)"] = rate(iteration)
+    stages = {"engine alone (env.stepper)": engine, "env alone (env.step + transforms)": env_steps,
+              "collector (env + policy)": lambda: next(batches),
+              "learner (PPO.update)": lambda: ppo.update(data.clone(), lambda *args: None),
+              "whole loop (collector + learner)": iteration}
+    # The stages take turns within each repeat, each timed over whole batches for at least --seconds, so a drift
+    # of this machine's speed reaches them all alike; each stage's ratio to the engine is taken within its repeat.
+    rates = {name: [] for name in stages}
+    for _ in range(args.repeats):
+        for name, fn in stages.items():
+            rates[name].append(median_rate(fn, frames, 1, min_seconds=args.seconds))
+    engine_rates = rates["engine alone (env.stepper)"]
+    print(f"\n| stage | env-steps/s (median of {args.repeats}) | of engine alone (median of the repeats' ratios) |"
+          "\n|---|---|---|")
+    for name, stage_rates in rates.items():
+        ratio = statistics.median(r / e for r, e in zip(stage_rates, engine_rates))
+        print(f"| {name} | {statistics.median(stage_rates):,.0f} | {ratio:.2f} |")
     if args.learner_variant:
-        rows[f"learner, {args.learner_variant}"] = variant_rate(args, data, frames, ppo)
-    engine_rate = rows["engine alone (env.stepper)"]
-    print("\n| stage | env-steps/s | of engine alone |\n|---|---|---|")
-    for name, rate in rows.items():
-        print(f"| {name} | {rate:,.0f} | {rate / engine_rate:.2f} |")
+        print_learner_variant(args, data, frames, ppo)
     if args.profile_collector:
         profile = cProfile.Profile()
         profile.runcall(lambda: [next(batches) for _ in range(args.profile_collector)])
@@ -96,9 +102,9 @@ def main():
     ppo.collector.shutdown()
 
 
-def variant_rate(args, data, frames: int, ppo: PPO) -> float:
-    """Samples/s of ``PPO.update`` for a PPO built with ``args.learner_variant`` on top of ``args.overrides``,
-    alternating repeat by repeat with ``ppo``'s (printed) on the same batch ``data``."""
+def print_learner_variant(args, data, frames: int, ppo: PPO) -> None:
+    """Print the samples/s of ``PPO.update`` for a PPO built with ``args.learner_variant`` on top of
+    ``args.overrides`` beside ``ppo``'s, the two alternating repeat by repeat on the same batch ``data``."""
     with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
         cfg = compose(config_name="config", overrides=[*args.overrides, *args.learner_variant.split()])
     other = PPO(cfg)
@@ -107,12 +113,11 @@ def variant_rate(args, data, frames: int, ppo: PPO) -> float:
     for _ in range(args.repeats):
         for name, learner in (("first", ppo), ("variant", other)):
             rates[name].append(median_rate(lambda: learner.update(data.clone(), lambda *a: None), frames, 1,
-                                           min_seconds=0))
+                                           min_seconds=args.seconds))
     first, variant = (statistics.median(rates[k]) for k in ("first", "variant"))
     print(f"learner side by side (samples/s, medians of {args.repeats}): as configured {first:,.0f}, "
           f"{args.learner_variant} {variant:,.0f}")
     other.collector.shutdown()
-    return statistics.median(rates["variant"])
 
 
 if __name__ == "__main__":

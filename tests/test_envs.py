@@ -71,6 +71,34 @@ def test_staggered_episodes():
     assert plain.rollout(10, break_when_any_done=False)["next", "truncated"][:, -1].all()
 
 
+def test_partial_resets_draw_each_start_once_and_follow_the_seed():
+    """Restarted envs take their start states from a pool drawn a batch at a time (``_pooled_starts``): every
+    restart gets a new state, also across the pool's refills; each is a whole start state (the kinematics of its own
+    ``q``, within the reset noise of the keyframe); the envs not flagged keep theirs; and a seed replays them."""
+    env = envs.make("ant", num_envs=4)
+    flagged = torch.tensor([True, False, True, True])
+
+    def restarts(seed):
+        env.set_seed(seed)
+        env.reset()
+        kept = env.state.q[1].clone()
+        states = []
+        for _ in range(5):  # 15 restarts from a pool of 4: refilled four times
+            env.reset(TensorDict(_reset=flagged[:, None], batch_size=[4]))
+            states.append(torchsim.State(*(x[flagged].clone() for x in env.state)))
+            assert torch.equal(env.state.q[1], kept)
+        return torchsim.State(*(torch.cat(xs) for xs in zip(*states)))
+
+    first = restarts(3)
+    assert len(torch.unique(first.q, dim=0)) == 15
+    assert ((first.q - env.init_q)[:, 7:].abs() <= env.noise_q[1] + 1e-6).all()  # joints: uniform noise
+    rebuilt = torchsim.init(env.sys, first.q, first.qd)
+    for name, x, y in zip(first._fields, first, rebuilt):
+        torch.testing.assert_close(x, y, msg=name)
+    for x, y in zip(restarts(3), first):
+        assert torch.equal(x, y)
+
+
 def _random_start(env, n, seed):
     torch.manual_seed(seed)
     return env._sample_init(n)

@@ -11,6 +11,7 @@ from torchrl.envs.transforms import VecNormV2
 from torchrl.envs.utils import RandomPolicy
 
 from torchsim.algos.common import RunningNorm, TrainingDiverged, evaluate, load_policy, make_env
+from torchsim.algos.networks import make_actor
 from torchsim.algos.train import CONFIG_DIR, run
 
 # Eager physics and one thread: these tests check the recipes, not the compiled step (tests/test_training_compile.py)
@@ -81,6 +82,29 @@ def test_checkpoint_round_trip_and_resume(tmp_path):
     assert torch.equal(torch.get_rng_state(), rng)
     resumed = run(tiny("ppo", f"resume={tmp_path / 'checkpoints' / 'last.pt'}", "budget.env_steps=48"), tmp_path / "r")
     assert resumed.env_steps == 48 and resumed.iteration == 3
+
+
+def test_gaussian_policy_with_a_state_independent_scale(tmp_path):
+    """``policy_net.distribution=normal policy_net.scale=parameter`` (CleanRL's continuous policy): one learned scale
+    per action dimension whatever the observation, starting at 1; log-probabilities of that diagonal Gaussian, whose
+    deterministic action is its mean, unsquashed; the options survive a checkpoint; unknown values are refused."""
+    options = ["algo.policy_net.distribution=normal", "algo.policy_net.scale=parameter"]
+    trained = run(tiny("ppo", *options), tmp_path)
+    actor = load_policy(torch.load(tmp_path / "checkpoints" / "last.pt", weights_only=False),
+                        make_env(tiny("ppo"), 5, "cpu"), "cpu")
+    obs = TensorDict(observation=3 * torch.randn(5, trained.eval_env.observation_spec["observation"].shape[-1]),
+                     batch_size=[5])
+    with torch.no_grad():
+        sampled = actor(obs.clone())
+        assert torch.equal(sampled["scale"], sampled["scale"][:1].expand(5, -1))
+        expected = torch.distributions.Normal(sampled["loc"], sampled["scale"]).log_prob(sampled["action"]).sum(-1)
+        torch.testing.assert_close(sampled["action_log_prob"], expected)
+        with set_exploration_type(ExplorationType.DETERMINISTIC):
+            assert torch.equal(actor(obs.clone())["action"], sampled["loc"])
+    untrained = make_actor(make_env(tiny("ppo"), 5, "cpu"), tiny("ppo", *options).algo.policy_net, "cpu")
+    assert torch.equal(untrained(obs.clone())["scale"], torch.ones(5, 1))
+    with pytest.raises(ValueError, match="policy_net.distribution.*beta"):
+        run(tiny("ppo", "algo.policy_net.distribution=beta"), tmp_path / "bad")
 
 
 @pytest.mark.parametrize("algo", ["ppo", "sac"])
