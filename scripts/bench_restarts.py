@@ -9,26 +9,18 @@ Milliseconds per call, medians of ``--repeats`` timings of at least 0.5 s each, 
 """
 
 import argparse
-import statistics
-import time
 
 import torch
 from tensordict import TensorDict
 
 import torchsim.envs
+from _timing import median_rate
 
 
 def ms_per_call(fn, repeats: int) -> float:
-    for _ in range(20):
+    for _ in range(20):  # warm-up: the first calls allocate and fill the pool
         fn()
-    timings = []
-    for _ in range(repeats):
-        calls, start = 0, time.perf_counter()
-        while calls == 0 or time.perf_counter() - start < 0.5:
-            fn()
-            calls += 1
-        timings.append((time.perf_counter() - start) / calls * 1e3)
-    return statistics.median(timings)
+    return 1e3 / median_rate(fn, 1, repeats)
 
 
 def main():
