@@ -46,10 +46,9 @@ class Rollout:
     def normalise(self, obs: torch.Tensor, update: bool) -> torch.Tensor:
         """``obs`` normalised with the running statistics (after adding it to them, if ``update``); differentiable
         in ``obs``, the statistics held constant."""
-        td = TensorDict(observation=obs, batch_size=obs.shape[:1])
         if update:
-            self.norm._stateful_update(td.detach())
-        return self.norm._stateful_norm(td)["observation"]
+            self.norm.update("observation", obs.detach())
+        return self.norm.normalize("observation", obs)
 
     def action(self, net: nn.Module, obs: torch.Tensor, update: bool = True) -> torch.Tensor:
         loc, _ = net(self.normalise(obs, update))

@@ -16,20 +16,18 @@ import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from torchrl.envs import Compose, ExplorationType, RewardSum, StepCounter, TransformedEnv, set_exploration_type
-from torchrl.envs.transforms import RewardScaling, VecNormV2
+from torchrl.envs.transforms import RewardScaling
 from torchrl.modules import ProbabilisticActor
 from torchrl.record.loggers import get_logger
 
 import torchsim.envs
 from torchsim.algos import nav_policy
+from torchsim.algos.normalization import RunningNorm
 from torchsim.algos.distributed import Ranks
 from torchsim.algos.networks import make_actor
 from torchsim.envs.nav import video as nav_video
 from torchsim.mujoco_stepper import MujocoStepper
 
-# VecNormV2 (and so RunningNorm) warns on every call that batched containers are experimental; its batch reduction
-# is what we want.
-warnings.filterwarnings("ignore", message=r"Support of \w+ for containers with non-empty batch-size is experimental")
 # tensordict reads a deprecated dynamo flag while torch.compile traces the loss (tensordict 0.14, torch 2.13)
 warnings.filterwarnings("ignore", message=r"torch._dynamo.config.inline_inbuilt_nn_modules is deprecated")
 log = logging.getLogger("torchsim.train")
@@ -39,19 +37,6 @@ class TrainingDiverged(RuntimeError):
 
 
 # ------------------------------------------------------------------------------------------------------ environment
-class RunningNorm(VecNormV2):
-    """``VecNormV2`` with a variance that cannot go negative.
-
-    VecNormV2 keeps running means of x and x² and takes ``E[x²] - E[x]²`` as the variance. For a constant feature
-    (the body masses in Humanoid's observation) float32 rounding can make that slightly negative, its square root
-    NaN, and one NaN feature then poisons the policy (seen at ~80k steps of Humanoid PPO). Clamping ``E[x²]`` at
-    ``E[x]²`` keeps the variance at >= 0, so a constant feature is scaled by ``eps`` as intended.
-    """
-
-    def _norm(self, data, loc, var, count):
-        return super()._norm(data, loc, var.apply(lambda v, m: torch.maximum(v, m * m), loc), count)
-
-
 def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: TransformedEnv | None = None
              ) -> TransformedEnv:
     """The task batched over ``num_envs`` with running observation normalisation (``RunningNorm``, statistics over
@@ -85,8 +70,9 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
                                   stagger_episodes=train and cfg.stagger_episodes, stepper=stepper)
         normalised = [k for k in ("observation", "privileged_state") if k in base.observation_spec.keys()]
         recurrent = []
-    norm = RunningNorm(in_keys=normalised or ["observation"], decay=cfg.obs_norm_decay, eps=1e-4,
-                       reduce_batch_dims=True)
+    spec = base.observation_spec
+    norm = RunningNorm({k: spec[k].shape[base.batch_dims:] for k in normalised}, decay=cfg.obs_norm_decay,
+                       eps=1e-4, dtype=spec[normalised[0]].dtype).to(device)
     transforms = [norm, RewardSum(), StepCounter(), *recurrent]
     if train:  # the losses learn from scaled_reward; reward (and episode_reward) stay the task's
         transforms.append(RewardScaling(0.0, cfg.algo.reward_scale, in_keys=["reward"], out_keys=["scaled_reward"]))

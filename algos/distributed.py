@@ -112,16 +112,13 @@ class Ranks:
         return (x - mean.to(x.dtype)) / std.to(x.dtype).clamp_min(1e-6)
 
     def average_moments_(self, norm) -> None:
-        """Average an observation normaliser's running moments (a ``VecNormV2``: E[x] and E[x^2], equal counts on
-        every rank) over the ranks, so that every rank normalises with the statistics of all their samples."""
+        """Average an observation normaliser's running moments (``RunningNorm.moments``: E[x] and E[x^2], equal
+        counts on every rank) over the ranks, so that every rank normalises with the statistics of all their
+        samples."""
         if not self.parallel:
             return
-        state = norm.state_dict()
-        moments = state["_extra_state"]
-        for key, value in moments.items():
-            if key.startswith(("loc", "var")):
-                moments[key] = self.mean(value)
-        norm.load_state_dict(state)
+        for moment in norm.moments():
+            moment.copy_(self.mean(moment))
 
     def agree(self, flag: bool) -> bool:
         """Rank 0's ``flag`` on every rank (e.g. whether the run has finished, which its wall clock decides)."""
