@@ -22,9 +22,9 @@ from torchrl.record.loggers import get_logger
 
 import torchsim.envs
 from torchsim.algos import nav_policy
-from torchsim.algos.normalization import RunningNorm
 from torchsim.algos.distributed import Ranks
 from torchsim.algos.networks import make_actor
+from torchsim.algos.normalization import RunningNorm
 from torchsim.envs.nav import video as nav_video
 from torchsim.mujoco_stepper import MujocoStepper
 

@@ -5,8 +5,8 @@ object from one that pushes it to the goal.
 
 For each physics (torchsim, and MuJoCo C through ``torchsim.mujoco_stepper``) the deterministic policy runs one
 episode per env from the same start states (``--seed``); printed: the object's distance to the goal in the table's
-plane at the start and after the episode's last action (medians), the share of episodes that end with the object
-within 5 cm of the goal, and the tip's distance to the object.
+plane at the start and after 99 of the episode's 100 actions (the 100th would restart it; medians), the share of
+episodes that end with the object within 5 cm of the goal, and the tip's distance to the object.
 """
 
 import argparse
