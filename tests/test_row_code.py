@@ -138,3 +138,22 @@ def test_step_kernel_with_per_env_parameters_matches_the_reference():
     assert other._kernel_built[1] is stepper._kernel_built[1]
     assert not torch.allclose(moved.qd, stepper(start, ctrl[0]).qd)
     torch.testing.assert_close(moved.qd, torchsim.step(other.sys, start, ctrl[0]).qd, rtol=0, atol=1e-9)
+
+
+def test_step_kernel_shares_a_batch_between_threads_exactly():
+    """A batch of at least 4 vector blocks per thread runs in shares on torch's OpenMP threads
+    (``row_code.Kernel``): envs never interact, so two threads' steps equal one thread's bit for bit, across the
+    shares' seam and a partial last block (8 blocks and 5 envs: shares of 4 and 5 blocks)."""
+    sys = torchsim.load_mjcf(str(torchsim.envs.asset_path("inverted_pendulum.xml")))
+    batch = 8 * row_code.vector_bytes() // 4 + 5
+    generator = torch.Generator().manual_seed(0)
+    state = torchsim.init(sys, sys.q0 + 0.3 * torch.randn(batch, sys.nq, generator=generator),
+                          torch.randn(batch, sys.nv, generator=generator))
+    ctrl = torch.rand(batch, sys.nu, generator=generator) * 2 - 1
+    one, two = torchsim.Stepper(sys, "kernel", threads=1), torchsim.Stepper(sys, "kernel", threads=2)
+    a, b = state, state
+    for _ in range(5):
+        a, b = one(a, ctrl), two(b, ctrl)
+    assert two._kernel_built[1].kernel.threads == 2
+    for x, y in zip(a, b):
+        assert torch.equal(x, y)

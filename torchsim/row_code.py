@@ -27,7 +27,6 @@ import operator
 import os
 import pathlib
 import subprocess
-from concurrent.futures import ThreadPoolExecutor
 from typing import Callable, NamedTuple
 
 import torch
@@ -227,7 +226,16 @@ class Program:
                 "    const long n = end - b < W ? end - b : W;\n"
                 f"{block(self.loads, '    ')}\n{block(self.before, '    ')}\n"
                 f"    for (long it = 0; it < iterations; ++it) {{\n{block(self.inside, '      ')}\n    }}\n"
-                f"{block(self.after, '    ')}\n{block(self.stores, '    ')}\n  }}\n}}\n")
+                f"{block(self.after, '    ')}\n{block(self.stores, '    ')}\n  }}\n}}\n"
+                # the batch's blocks in `shares` contiguous shares on OpenMP threads: torch's own pool (its libgomp,
+                # which this library loads), so torch's ops after a step find its threads awake
+                f'extern "C" void run_shared(long batch, long shares, long iterations, {", ".join(args)}) {{\n'
+                "  const long blocks = (batch + W - 1) / W;\n"
+                "  #pragma omp parallel for num_threads(shares) schedule(static, 1)\n"
+                "  for (long k = 0; k < shares; ++k) {\n"
+                "    const long a = blocks * k / shares * W, b = blocks * (k + 1) / shares * W;\n"
+                f"    run(batch, a, b < batch ? b : batch, iterations, {', '.join(a.split()[-1] for a in args)});\n"
+                "  }\n}\n")
 
 
 def _offset(t: Tensor, r: int) -> str:
@@ -341,10 +349,11 @@ class _Emitter:
 
 def compiler_command() -> list[str]:
     """How generated code is compiled: the system ``g++``, no fast-math, no FMA contraction (each op rounds as its
-    torch op does), the host's ISA at the vector width of :func:`vector_bytes`, linked to ``libtorch_cpu`` (SLEEF)."""
+    torch op does), the host's ISA at the vector width of :func:`vector_bytes`, linked to ``libtorch_cpu`` (SLEEF)
+    and, through ``-fopenmp``, to the OpenMP runtime torch has loaded (its intra-op threads)."""
     isa = ["-march=native"] + (["-mno-avx512f"] if vector_bytes() == 32 else [])
     torch_lib = pathlib.Path(torch.__file__).parent / "lib"
-    return ["g++", "-O2", "-std=c++17", "-fPIC", "-shared", "-fno-math-errno", "-ffp-contract=off", *isa,
+    return ["g++", "-O2", "-std=c++17", "-fPIC", "-shared", "-fopenmp", "-fno-math-errno", "-ffp-contract=off", *isa,
             f"-L{torch_lib}", f"-Wl,-rpath,{torch_lib}"]
 
 
@@ -373,26 +382,25 @@ def build(code: str, what: str, key: str) -> pathlib.Path:
 class Kernel:
     """A built :class:`Program` (its library at ``path``): ``kernel(batch, inputs, outputs, iterations)`` runs it
     on envs ``0:batch`` of tensors laid out as the Program's; batches of several blocks per thread are split between
-    ``threads`` threads (the call releases the GIL, and envs never interact, so the shares need no synchronisation)."""
+    ``threads`` OpenMP threads (the call releases the GIL, and envs never interact, so the shares need no
+    synchronisation).
+
+    The threads are torch's intra-op pool (OpenMP), not a pool of Python threads of its own: two pools on the same
+    cores take turns badly. With Python threads, a (2048, 27) reduction right after an Ant step took 208 us against
+    34 us alone, and the Ant env's steps (with their transforms) ran at 0.71 of the engine's rate; on torch's pool,
+    0.84 (``docs/benchmarks.md``, "The training loop")."""
 
     def __init__(self, path: pathlib.Path, dtype: torch.dtype, threads: int = 1):
         self.lanes = vector_bytes() // dtype.itemsize
-        self.run = ctypes.CDLL(str(path)).run
-        self.run.restype = None
+        library = ctypes.CDLL(str(path))
+        self.run, self.run_shared = library.run, library.run_shared
+        self.run.restype = self.run_shared.restype = None
         self.threads = threads
-        self.pool = ThreadPoolExecutor(threads - 1, thread_name_prefix="torchsim-kernel") if threads > 1 else None
 
     def __call__(self, batch: int, inputs: list[torch.Tensor], outputs: list[torch.Tensor], iterations: int) -> None:
         pointers = [ctypes.c_void_p(x.data_ptr()) for x in (*inputs, *outputs)]
-        blocks = -(-batch // self.lanes)
-        shares = min(self.threads, blocks // 4) if self.pool else 1  # at least 4 blocks a share
+        shares = min(self.threads, -(-batch // self.lanes) // 4)  # at least 4 blocks a share
         if shares <= 1:
             self.run(ctypes.c_long(batch), ctypes.c_long(0), ctypes.c_long(batch), ctypes.c_long(iterations), *pointers)
-            return
-        cuts = [min(batch, blocks * k // shares * self.lanes) for k in range(shares + 1)]
-        futures = [self.pool.submit(self.run, ctypes.c_long(batch), ctypes.c_long(a), ctypes.c_long(b),
-                                    ctypes.c_long(iterations), *pointers) for a, b in zip(cuts[1:-1], cuts[2:])]
-        self.run(ctypes.c_long(batch), ctypes.c_long(cuts[0]), ctypes.c_long(cuts[1]), ctypes.c_long(iterations),
-                 *pointers)
-        for future in futures:
-            future.result()
+        else:
+            self.run_shared(ctypes.c_long(batch), ctypes.c_long(shares), ctypes.c_long(iterations), *pointers)
