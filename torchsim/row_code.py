@@ -388,7 +388,7 @@ class Kernel:
     The threads are torch's intra-op pool (OpenMP), not a pool of Python threads of its own: two pools on the same
     cores take turns badly. With Python threads, a (2048, 27) reduction right after an Ant step took 208 us against
     34 us alone, and the Ant env's steps (with their transforms) ran at 0.71 of the engine's rate; on torch's pool,
-    0.84 (``docs/benchmarks.md``, "The training loop")."""
+    0.83 (``docs/benchmarks.md``, "The training loop")."""
 
     def __init__(self, path: pathlib.Path, dtype: torch.dtype, threads: int = 1):
         self.lanes = vector_bytes() // dtype.itemsize
