@@ -219,6 +219,7 @@ class Program:
         sleef = f"{'f' if self.dtype == torch.float32 else 'd'}{lanes}"
         args = [f"const {'uint8_t' if t.mask else 'T'}* __restrict in{k}" for k, t in enumerate(self.inputs)]
         args += [f"{'uint8_t' if t.mask else 'T'}* __restrict out{k}" for k, t in enumerate(self.outputs)]
+        names = [f"in{k}" for k in range(len(self.inputs))] + [f"out{k}" for k in range(len(self.outputs))]
         block = lambda lines, indent: "\n".join(indent + line for line in lines)  # noqa: E731
         return (_PRELUDE.format(T=T, I=I, W=lanes, bytes=width, sleef=sleef, suffix=suffix)
                 + f'extern "C" void run(long batch, long begin, long end, long iterations, {", ".join(args)}) {{\n'
@@ -234,7 +235,7 @@ class Program:
                 "  #pragma omp parallel for num_threads(shares) schedule(static, 1)\n"
                 "  for (long k = 0; k < shares; ++k) {\n"
                 "    const long a = blocks * k / shares * W, b = blocks * (k + 1) / shares * W;\n"
-                f"    run(batch, a, b < batch ? b : batch, iterations, {', '.join(a.split()[-1] for a in args)});\n"
+                f"    run(batch, a, b < batch ? b : batch, iterations, {', '.join(names)});\n"
                 "  }\n}\n")
 
 
