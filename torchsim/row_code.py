@@ -217,12 +217,13 @@ class Program:
         T, I, suffix = ("float", "int32_t", "f") if self.dtype == torch.float32 else ("double", "int64_t", "")
         lanes = width // self.dtype.itemsize
         sleef = f"{'f' if self.dtype == torch.float32 else 'd'}{lanes}"
-        args = [f"const {'uint8_t' if t.mask else 'T'}* __restrict in{k}" for k, t in enumerate(self.inputs)]
-        args += [f"{'uint8_t' if t.mask else 'T'}* __restrict out{k}" for k, t in enumerate(self.outputs)]
-        names = [f"in{k}" for k in range(len(self.inputs))] + [f"out{k}" for k in range(len(self.outputs))]
+        params = [(f"const {'uint8_t' if t.mask else 'T'}*", f"in{k}") for k, t in enumerate(self.inputs)]
+        params += [(f"{'uint8_t' if t.mask else 'T'}*", f"out{k}") for k, t in enumerate(self.outputs)]
+        args = ", ".join(f"{kind} __restrict {name}" for kind, name in params)
+        names = ", ".join(name for _, name in params)
         block = lambda lines, indent: "\n".join(indent + line for line in lines)  # noqa: E731
         return (_PRELUDE.format(T=T, I=I, W=lanes, bytes=width, sleef=sleef, suffix=suffix)
-                + f'extern "C" void run(long batch, long begin, long end, long iterations, {", ".join(args)}) {{\n'
+                + f'extern "C" void run(long batch, long begin, long end, long iterations, {args}) {{\n'
                 "  for (long b = begin; b < end; b += W) {\n"
                 "    const long n = end - b < W ? end - b : W;\n"
                 f"{block(self.loads, '    ')}\n{block(self.before, '    ')}\n"
@@ -230,12 +231,12 @@ class Program:
                 f"{block(self.after, '    ')}\n{block(self.stores, '    ')}\n  }}\n}}\n"
                 # the batch's blocks in `shares` contiguous shares on OpenMP threads: torch's own pool (its libgomp,
                 # which this library loads), so torch's ops after a step find its threads awake
-                f'extern "C" void run_shared(long batch, long shares, long iterations, {", ".join(args)}) {{\n'
+                f'extern "C" void run_shared(long batch, long shares, long iterations, {args}) {{\n'
                 "  const long blocks = (batch + W - 1) / W;\n"
                 "  #pragma omp parallel for num_threads(shares) schedule(static, 1)\n"
                 "  for (long k = 0; k < shares; ++k) {\n"
                 "    const long a = blocks * k / shares * W, b = blocks * (k + 1) / shares * W;\n"
-                f"    run(batch, a, b < batch ? b : batch, iterations, {', '.join(names)});\n"
+                f"    run(batch, a, b < batch ? b : batch, iterations, {names});\n"
                 "  }\n}\n")
 
 
