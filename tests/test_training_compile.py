@@ -25,7 +25,8 @@ from torchsim.algos.train import run
 def test_evaluation_reuses_the_training_graph(tmp_path, caplog, monkeypatch):
     """PPO with ``compile=true``: the training env builds the step (one C++ step kernel, for any batch size) once;
     the evaluation env, with another batch size and the training env's System, builds nothing more, though it is
-    evaluated at the first and the last iteration; dynamo compiles nothing of the physics. The step cache is empty
+    evaluated at the first and the last iteration; dynamo compiles nothing of the physics, and the loss it compiles
+    is announced by its class. The step cache is empty
     (an earlier test or run may have stored this kernel, which would then load instead of build)."""
     monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path / "step_cache"))
     cfg = config("algo=ppo", "env=inverted_pendulum", "algo.num_envs=8", "algo.unroll=2", "algo.minibatches=2",
@@ -41,6 +42,8 @@ def test_evaluation_reuses_the_training_graph(tmp_path, caplog, monkeypatch):
     assert len([m for m in built if "spring step" in m and "tracing its row graphs" in m]) == 1, built
     assert len([m for m in built if "spring step" in m and "as C++" in m]) == 1, built
     assert not [m for m in built if "as a row graph" in m or "_step_terms" in m or "finish" in m], built
+    # the console names what torch.compile compiles: TorchRL's loss forward is a closure that says little alone
+    assert [m for m in built if "new_forward of ClipPPOLoss (torch.compile" in m], built
 
 
 CACHE_PROBE = textwrap.dedent("""

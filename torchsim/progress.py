@@ -40,14 +40,21 @@ def announce(what: str):
 
 def announce_torch_compiles() -> None:
     """Announce every ``torch.compile`` compilation in this process (through dynamo's start and end callbacks),
-    naming the function being compiled; installs itself once."""
+    naming the function being compiled (and its module's class, for a method), and the backward pass that
+    AOTAutograd compiles for it at the first ``backward()``; installs itself once."""
     global _installed
     if _installed:
         return
-    from torch._dynamo.callback import callback_handler
+    from torch._dynamo.callback import CallbackTrigger, callback_handler
 
-    callback_handler.register_start_callback(lambda args: _in_progress.enter_context(
-        announce(f"{_compiled_function_name()} (torch.compile {args.compile_id})")))
+    def start(args):
+        if args.callback_trigger == CallbackTrigger.LAZY_BACKWARD:
+            what = f"the backward pass of {_compiled_names.get(args.compile_id, 'a compiled function')}"
+        else:
+            what = _compiled_names[args.compile_id] = _compiled_function_name()
+        _in_progress.enter_context(announce(f"{what} (torch.compile {args.compile_id})"))
+
+    callback_handler.register_start_callback(start)
     callback_handler.register_end_callback(lambda args: _in_progress.close())
     _installed = True
 
@@ -55,14 +62,20 @@ def announce_torch_compiles() -> None:
 _installed = False
 #: The announcement of the compilation in progress (dynamo compiles one frame at a time).
 _in_progress = contextlib.ExitStack()
+#: What each compile id compiled, to name its backward pass.
+_compiled_names: dict[str, str] = {}
 
 
 def _compiled_function_name() -> str:
-    """The name of the function dynamo is compiling: its ``_compile(code, ...)`` frame is on the stack."""
+    """The name of the function dynamo is compiling (its ``_compile(code, globals, locals, ...)`` frame is on the
+    stack), with the class of its ``self`` where the function has one (a loss's ``forward`` is TorchRL's
+    ``_forward_wrapper.<locals>.new_forward``, which says little alone)."""
     frame = sys._getframe()
     while frame is not None:
         code = frame.f_locals.get("code") if frame.f_code.co_name == "_compile" else None
         if isinstance(code, types.CodeType):
-            return code.co_qualname
+            owner = type((frame.f_locals.get("locals") or {}).get("self")).__name__
+            named = owner in ("NoneType", code.co_qualname.split(".")[0])
+            return code.co_qualname if named else f"{code.co_qualname} of {owner}"
         frame = frame.f_back
     return "a function"
