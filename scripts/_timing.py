@@ -41,6 +41,18 @@ def median_rate(run: Callable[[], None], units: float, repeats: int, min_seconds
     return statistics.median(rates)
 
 
+def alternating_rates(runs: dict[str, Callable[[], None]], units: float, repeats: int, min_seconds: float = 0.5
+                      ) -> dict[str, list[float]]:
+    """Each run's rate (as ``median_rate``: ``units`` x calls / seconds over at least ``min_seconds``) in each of
+    ``repeats`` repeats, the runs taking turns within a repeat: a drift of the machine's speed then reaches them all
+    alike, so ratios between runs are best taken repeat by repeat."""
+    rates = {name: [] for name in runs}
+    for _ in range(repeats):
+        for name, run in runs.items():
+            rates[name].append(median_rate(run, units, 1, min_seconds))
+    return rates
+
+
 def mujoco_start_states(m: mujoco.MjModel, q: np.ndarray, qd: np.ndarray) -> np.ndarray:
     """(batch, nstate) full-physics states of ``m`` at generalized positions ``q`` and velocities ``qd`` (batch, .)."""
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS

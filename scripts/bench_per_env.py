@@ -17,7 +17,7 @@ import torch
 
 import torchsim
 import torchsim.envs
-from _timing import emit_table, median_rate
+from _timing import alternating_rates, emit_table
 
 
 def main():
@@ -51,13 +51,9 @@ def main():
                     first_s = time.perf_counter() - start
                 print(f"{name} batch {batch} {label} ({stepper.strategy}): first step {first_s:.1f} s", flush=True)
                 runs[label] = run
-            # The two take turns, repeat by repeat, so a drift of the machine's speed reaches both alike; the ratio
-            # is the median of the repeats' ratios.
-            rates = {label: [] for label in runs}
+            # the ratio: the median of the repeats' ratios (the two take turns within each repeat)
             with torch.no_grad():
-                for _ in range(args.repeats):
-                    for label, run in runs.items():
-                        rates[label].append(median_rate(run, batch, 1))
+                rates = alternating_rates(runs, batch, args.repeats)
             ratio = statistics.median(p / s for p, s in zip(rates["per-env"], rates["shared"]))
             rates = {label: statistics.median(r) for label, r in rates.items()}
             strategy = " / ".join(dict.fromkeys((shared.strategy, per_env.strategy)))

@@ -29,7 +29,7 @@ import statistics
 import torch
 from hydra import compose, initialize_config_dir
 
-from _timing import median_rate
+from _timing import alternating_rates
 from torchsim.algos.ppo import PPO
 from torchsim.algos.train import CONFIG_DIR, prepare
 
@@ -83,10 +83,7 @@ def main():
               "whole loop (collector + learner)": iteration}
     # The stages take turns within each repeat, each timed over whole batches for at least --seconds, so a drift
     # of this machine's speed reaches them all alike; each stage's ratio to the engine is taken within its repeat.
-    rates = {name: [] for name in stages}
-    for _ in range(args.repeats):
-        for name, fn in stages.items():
-            rates[name].append(median_rate(fn, frames, 1, min_seconds=args.seconds))
+    rates = alternating_rates(stages, frames, args.repeats, args.seconds)
     engine_rates = rates["engine alone (env.stepper)"]
     print(f"\n| stage | env-steps/s (median of {args.repeats}) | of engine alone (median of the repeats' ratios) |"
           "\n|---|---|---|")
@@ -109,11 +106,9 @@ def print_learner_variant(args, data, frames: int, ppo: PPO) -> None:
         cfg = compose(config_name="config", overrides=[*args.overrides, *args.learner_variant.split()])
     other = PPO(cfg)
     other.update(data.clone(), lambda *a: None)  # compiles its loss
-    rates = {"first": [], "variant": []}
-    for _ in range(args.repeats):
-        for name, learner in (("first", ppo), ("variant", other)):
-            rates[name].append(median_rate(lambda: learner.update(data.clone(), lambda *a: None), frames, 1,
-                                           min_seconds=args.seconds))
+    rates = alternating_rates({"first": lambda: ppo.update(data.clone(), lambda *a: None),
+                               "variant": lambda: other.update(data.clone(), lambda *a: None)},
+                              frames, args.repeats, args.seconds)
     first, variant = (statistics.median(rates[k]) for k in ("first", "variant"))
     print(f"learner side by side (samples/s, medians of {args.repeats}): as configured {first:,.0f}, "
           f"{args.learner_variant} {variant:,.0f}")

@@ -74,8 +74,9 @@ def _compiled_function_name() -> str:
     while frame is not None:
         code = frame.f_locals.get("code") if frame.f_code.co_name == "_compile" else None
         if isinstance(code, types.CodeType):
-            owner = type((frame.f_locals.get("locals") or {}).get("self")).__name__
-            named = owner in ("NoneType", code.co_qualname.split(".")[0])
-            return code.co_qualname if named else f"{code.co_qualname} of {owner}"
+            owner = (frame.f_locals.get("locals") or {}).get("self")
+            if owner is None or code.co_qualname.startswith(type(owner).__name__ + "."):
+                return code.co_qualname
+            return f"{code.co_qualname} of {type(owner).__name__}"
         frame = frame.f_back
     return "a function"
