@@ -41,25 +41,29 @@ def announce(what: str):
 def announce_torch_compiles() -> None:
     """Announce every ``torch.compile`` compilation in this process (through dynamo's start and end callbacks),
     naming the function being compiled (and its module's class, for a method), and the backward pass that
-    AOTAutograd compiles for it at the first ``backward()``; installs itself once."""
-    global _installed
-    if _installed:
-        return
-    from torch._dynamo.callback import CallbackTrigger, callback_handler
+    AOTAutograd compiles for it at the first ``backward()``. Registers the callbacks where they are not registered:
+    ``torch._dynamo.reset()`` clears them, so call this again after a reset."""
+    from torch._dynamo.callback import callback_handler
 
-    def start(args):
-        if args.callback_trigger == CallbackTrigger.LAZY_BACKWARD:
-            what = f"the backward pass of {_compiled_names.get(args.compile_id, 'a compiled function')}"
-        else:
-            what = _compiled_names[args.compile_id] = _compiled_function_name()
-        _in_progress.enter_context(announce(f"{what} (torch.compile {args.compile_id})"))
-
-    callback_handler.register_start_callback(start)
-    callback_handler.register_end_callback(lambda args: _in_progress.close())
-    _installed = True
+    if _on_compile_start not in callback_handler.start_callbacks:
+        callback_handler.register_start_callback(_on_compile_start)
+        callback_handler.register_end_callback(_on_compile_end)
 
 
-_installed = False
+def _on_compile_start(args) -> None:
+    from torch._dynamo.callback import CallbackTrigger
+
+    if args.callback_trigger == CallbackTrigger.LAZY_BACKWARD:
+        what = f"the backward pass of {_compiled_names.get(args.compile_id, 'a compiled function')}"
+    else:
+        what = _compiled_names[args.compile_id] = _compiled_function_name()
+    _in_progress.enter_context(announce(f"{what} (torch.compile {args.compile_id})"))
+
+
+def _on_compile_end(args) -> None:
+    _in_progress.close()
+
+
 #: The announcement of the compilation in progress (dynamo compiles one frame at a time).
 _in_progress = contextlib.ExitStack()
 #: What each compile id compiled, to name its backward pass.
