@@ -26,7 +26,7 @@ from torchsim.algos.distributed import Ranks
 from torchsim.algos.networks import make_actor
 from torchsim.algos.normalization import RunningNorm
 from torchsim.envs.nav import video as nav_video
-from torchsim.mujoco_stepper import MujocoStepper
+from torchsim.execution.mujoco import MujocoStepper
 
 # tensordict reads a deprecated dynamo flag while torch.compile traces the loss (tensordict 0.14, torch 2.13)
 warnings.filterwarnings("ignore", message=r"torch._dynamo.config.inline_inbuilt_nn_modules is deprecated")
@@ -43,7 +43,7 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     the batch too), episode return (``episode_reward``) and length (``step_count``); a ``train`` env also emits
     ``scaled_reward`` (``cfg.algo.reward_scale`` times the reward) and staggers its first episodes if
     ``cfg.stagger_episodes``. The physics runs compiled (``torchsim.Stepper``, strategy ``auto``) if ``cfg.compile``,
-    or in MuJoCo C if ``cfg.physics == "mujoco"`` (``torchsim.mujoco_stepper``: the same task code on MuJoCo's
+    or in MuJoCo C if ``cfg.physics == "mujoco"`` (``torchsim.execution.mujoco``: the same task code on MuJoCo's
     physics); ``like``: an env whose stepper (System and compiled step) this one shares, for any ``num_envs`` above
     1. A navigation task (``torchsim.envs.NAV_ENVS``, no physics) has its depth normalised per pixel instead and
     draws its episodes from the layouts of ``cfg.env.split`` if ``train``, else of ``cfg.env.eval_split``, and, for a

@@ -6,7 +6,7 @@ tasks, the success rate and median final goal distance; for navigation, success 
 layouts of ``env.eval_split``); ``seed`` fixes the episodes' start states (a run's own evaluations use its
 ``eval.seed``); ``video=true`` writes ``eval.gif`` of env 0 next to the checkpoint's run dir (for navigation: the
 map from above beside the depth view). ``physics=mujoco`` runs the same task code on MuJoCo C's
-physics (``torchsim.mujoco_stepper``): a policy trained in torchsim, evaluated in MuJoCo (default: the physics it
+physics (``torchsim.execution.mujoco``): a policy trained in torchsim, evaluated in MuJoCo (default: the physics it
 trained on).
 """
 

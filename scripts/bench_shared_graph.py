@@ -33,7 +33,7 @@ def main():
         with torch.no_grad():
             env.rand_step(env.reset())
         print(f"batch {env.batch_size[0]}: first step {time.perf_counter() - start:.1f} s, "
-              f"{graphs['unique_graphs'] - before} new dynamo graphs, {env.stepper.num_row_graphs} row graphs in all",
+              f"{graphs['unique_graphs'] - before} new dynamo graphs, {env.stepper.num_kernels} step kernels in all",
               flush=True)
 
     def rate(env):

@@ -1,9 +1,9 @@
 """Each ``torchsim.Stepper`` strategy against MuJoCo C, per model and batch: the measurements behind
-``torchsim.stepper.choose_strategy`` (``docs/physics.md``, "How a step runs").
+the table ``torchsim.execution.STRATEGIES`` (``docs/physics.md``, "How a step runs").
 
     python scripts/bench_strategies.py                                  # ant, humanoid, halfcheetah; 1/64/1024/4096
     python scripts/bench_strategies.py --models ant --simdlen 256       # AVX2 code on an AVX-512 machine
-    python scripts/bench_strategies.py --models ant --batches 1 64 --strategies rows loop eager
+    python scripts/bench_strategies.py --models ant --batches 1 64 --strategies kernel loop eager
 
 Physics steps/s (batch x steps / s, float32, CPU, every thread) of one Stepper per model and strategy, built once and
 timed at every batch (its compile, on the first step of each new shape, is reported and not timed), from the env's
@@ -29,7 +29,7 @@ def parse_args():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--models", nargs="+", default=["ant", "humanoid", "halfcheetah"], help="env names")
     p.add_argument("--batches", nargs="+", type=int, default=[1, 64, 1024, 4096])
-    p.add_argument("--strategies", nargs="+", default=["kernel", "rows", "loop"])
+    p.add_argument("--strategies", nargs="+", default=["kernel", "loop"])
     p.add_argument("--simdlen", type=int, default=None, help="inductor cpp.simdlen (256: AVX2 code); for the "
                    "kernel strategy set ATEN_CPU_CAPABILITY=avx2 instead")
     p.add_argument("--repeats", type=int, default=5)

@@ -2,6 +2,7 @@
 
     python scripts/check_cuda.py                      # every shipped model, both methods, then every env
     python scripts/check_cuda.py --models ant.xml --skip-envs --out /tmp/check_cuda.md
+    python scripts/check_cuda.py --strategy kernel --methods spring --skip-envs --skip-render   # the GPU kernel
 
 1. **Physics.** Every model in ``envs/assets`` (URDFs as the envs translate them), spring and xpbd: ``--batch``
    envs from random joint angles within range and random rates, under random controls held for ``--steps`` env
@@ -10,6 +11,8 @@
    short-horizon differences of 1e-12-1e-9 are rounding, and anything near 1e-3 is a bug. Contact-rich models are
    chaotic, so the horizon is short. The same run in float32 on the GPU is compared with float32 on the CPU, both
    against the CPU in float64: the GPU must not be less accurate than the CPU at the precision the envs train in.
+   ``--strategy`` runs the GPU's rollouts through ``torchsim.Stepper(sys, strategy)`` instead (``kernel``: the
+   whole step as one generated Triton kernel), against the same eager CPU reference.
 2. **Envs.** Every env of ``torchsim.envs`` on the GPU: TorchRL's ``check_env_specs``, every output tensor on the
    GPU, a random rollout with no diverged env.
 3. **Cameras.** ``torchsim.render`` of ``--render-batch`` random states of the ant, reacher and grasp scenes, float32,
@@ -39,6 +42,8 @@ def parse_args():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--device", default="cuda")
     p.add_argument("--models", nargs="*", help="asset file names (default: every shipped model)")
+    p.add_argument("--methods", nargs="+", default=["spring", "xpbd"], choices=["spring", "xpbd"])
+    p.add_argument("--strategy", default=None, help="the GPU's rollouts through torchsim.Stepper(sys, strategy)")
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--steps", type=int, default=20, help="env steps per physics comparison")
     p.add_argument("--tol", type=float, default=1e-8, help="float64: max |gpu - cpu| / scale")
@@ -66,13 +71,14 @@ def random_inputs(m: mujoco.MjModel, batch: int, steps: int, rng: np.random.Gene
     return q, qd, ctrl
 
 
-def rollout(xml: str, method: str, device: str, dtype: torch.dtype, q, qd, ctrl) -> torchsim.State:
+def rollout(xml: str, method: str, device: str, dtype: torch.dtype, q, qd, ctrl, strategy=None) -> torchsim.State:
     sys_ = torchsim.load_mjcf(xml, method=method, dtype=dtype, device=device)
+    step = torchsim.Stepper(sys_, strategy) if strategy else lambda s, c: torchsim.step(sys_, s, c)
     as_tensor = lambda x: torch.as_tensor(x, dtype=dtype, device=device)  # noqa: E731
     with torch.no_grad():
         state = torchsim.init(sys_, as_tensor(q), as_tensor(qd))
         for c in as_tensor(ctrl):
-            state = torchsim.step(sys_, state, c)
+            state = step(state, c)
     return state
 
 
@@ -98,13 +104,13 @@ def check_physics(args, device: str) -> tuple[list[str], bool]:
         path = ASSETS_DIR / name
         xml = urdf_to_mjcf(path) if path.suffix == ".urdf" else path.read_text()
         m = mujoco.MjModel.from_xml_string(xml)
-        for method in ("spring", "xpbd"):
+        for method in args.methods:
             t0 = time.perf_counter()
             q, qd, ctrl = random_inputs(m, args.batch, args.steps, rng)
             ref = rollout(xml, method, "cpu", torch.float64, q, qd, ctrl)
-            gpu = rollout(xml, method, device, torch.float64, q, qd, ctrl)
+            gpu = rollout(xml, method, device, torch.float64, q, qd, ctrl, args.strategy)
             cpu32 = rollout(xml, method, "cpu", torch.float32, q, qd, ctrl)
-            gpu32 = rollout(xml, method, device, torch.float32, q, qd, ctrl)
+            gpu32 = rollout(xml, method, device, torch.float32, q, qd, ctrl, args.strategy)
             err64, err32_cpu, err32_gpu = state_error(gpu, ref), state_error(cpu32, ref), state_error(gpu32, ref)
             same_flags = bool((gpu.diverged.cpu() == ref.diverged).all())
             # float32 on the GPU may differ from float32 on the CPU by rounding, not by a step's worth of physics
@@ -200,7 +206,8 @@ def main():
     text, ok = [header, ""], True
     if not args.skip_physics:
         rows, ok = check_physics(args, device)
-        text += [f"Physics: batch {args.batch}, {args.steps} env steps, eager", "", *rows, ""]
+        how = f"the {args.strategy} strategy on the GPU" if args.strategy else "eager"
+        text += [f"Physics: batch {args.batch}, {args.steps} env steps, {how}", "", *rows, ""]
     if not args.skip_envs:
         env_rows, env_ok = check_envs(args, device)
         ok &= env_ok

@@ -2,7 +2,7 @@
 other's, with the same task code.
 
 For each checkpoint (a training run's ``checkpoints/last.pt``) the deterministic policy runs ``--episodes`` episodes
-on the physics it trained on and on the other one (torchsim or MuJoCo C, through ``torchsim.mujoco_stepper``), from
+on the physics it trained on and on the other one (torchsim or MuJoCo C, through ``torchsim.execution.mujoco``), from
 the same start states (``seed``), with the same observation, reward, termination and observation normaliser. The
 ratio of the mean returns (other / trained-on) says how much of the policy's skill survives the change of simulator:
 1.0 where the two simulators agree on everything the policy exploits.

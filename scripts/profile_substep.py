@@ -13,7 +13,7 @@ velocities, random controls, fixed seed; the timed substeps continue from there.
     python scripts/profile_substep.py --count-ops                  # arithmetic per env and substep, by stage
 
 ``--part-sizes``: the batch cut into parts of each size (whole parts only), each part's substep compiled for its
-size (static shapes), and a step's substeps run on one part after another on one thread, as ``torchsim.parts``
+size (static shapes), and a step's substeps run on one part after another on one thread, as ``torchsim.execution.parts``
 does; reports the time per env and substep, interleaving the sizes over the repeats so that machine noise hits
 them alike.
 

@@ -3,7 +3,7 @@ object from one that pushes it to the goal.
 
     python scripts/pusher_outcome.py outputs/ppo_pusher/<run>/checkpoints/last.pt [--episodes 64] [--seed 7]
 
-For each physics (torchsim, and MuJoCo C through ``torchsim.mujoco_stepper``) the deterministic policy runs one
+For each physics (torchsim, and MuJoCo C through ``torchsim.execution.mujoco``) the deterministic policy runs one
 episode per env from the same start states (``--seed``); printed: the object's distance to the goal in the table's
 plane at the start and after 99 of the episode's 100 actions (the 100th would restart it; medians), the share of
 episodes that end with the object within 5 cm of the goal, and the tip's distance to the object.

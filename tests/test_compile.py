@@ -2,9 +2,9 @@
 
 Compiling takes minutes per graph on 2 cores, so this file traces one small model (a hinged arm that hits the
 floor, and a falling box; 2 substeps) with dynamo for both methods (one graph, no breaks) and compiles it with
-inductor for the default method only, checking 20 steps against eager mode in float32; then three times more as
-``torchsim.Stepper`` runs it: as a generated C++ step (the default for spring on CPU), as a row graph, and in parts
-on two threads. Steppers of different strategies step side by side in one process.
+inductor for the default method only, checking 20 steps against eager mode in float32; then twice more as
+``torchsim.Stepper`` runs it: as a generated C++ step (the default for spring on CPU), and as the compiled step it
+falls back to, in parts on two threads. Steppers of different strategies step side by side in one process.
 """
 
 import functools
@@ -14,8 +14,8 @@ import torch
 
 import torchsim
 from models import METHODS
-from torchsim import rows as rows_module
-from torchsim import stepper as stepper_module
+from torchsim.execution import strategies
+from torchsim.execution.kernel import rows
 
 MODEL = """
 <mujoco><compiler angle="degree"/><option timestep="0.004"/><worldbody><geom type="plane" size="5 5 1"/>
@@ -83,38 +83,35 @@ def _worst_vs_eager(sys, compiled, ctrl):
     return max((a - b).abs().max().item() for e, c in zip(eager, compiled) for a, b in zip(e[:6], c[:6]))
 
 
-def test_kernel_rows_and_fallback_steppers_match_eager_side_by_side(tmp_path, monkeypatch, method="spring"):
-    """Three steppers of one System in one process, stepped in turn. One runs ``kernel`` (the default on CPU: the
-    whole step one generated C++ function, built once). One runs ``rows`` (the step's terms and end compiled by
-    dynamo, two graphs; the substep a row graph compiled by inductor alone, built once). The third is asked for
-    the default too, but the row interpreter is made to lack ``torch.cat``, so neither the kernel nor a row graph
-    can express the step: it falls back twice, with a warning each time, to ``loop`` (the step one compiled graph,
-    its substeps a loop; the batch cut into 4 parts of 2 that two threads step at once, joined). Each gives the
-    eager step's numbers."""
-    monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))  # a kernel or row graph stored by an earlier run would load
+def test_kernel_and_fallback_steppers_match_eager_side_by_side(tmp_path, monkeypatch, method="spring"):
+    """Two steppers of one System in one process, stepped in turn. One runs ``kernel`` (the default on CPU: the
+    whole step one generated C++ function, built once). The other is asked for the default too, but the row
+    interpreter is made to lack ``torch.cat``, so the kernel cannot express the step: it falls back, with one
+    warning naming the op, to ``loop`` (the step one compiled graph, its substeps a loop; the batch cut into 4 parts
+    of 2 that two threads step at once, joined). Each gives the eager step's numbers."""
+    monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))  # a kernel stored by an earlier run would load
     torch.compiler.reset()
     sys, state, ctrl = _setup(method)
     looped = torchsim.Stepper(sys, part_size=2, threads=2)
     with monkeypatch.context() as patch:
-        patch.delattr(rows_module._RowInterpreter, "_op_cat_default")
+        patch.delattr(rows._RowInterpreter, "_op_cat_default")
         with pytest.warns(UserWarning) as warned:
             looped_states, _ = _compiled_steps(looped, state, ctrl, steps=1)
     messages = [str(w.message) for w in warned if "cannot run as the" in str(w.message)]
-    assert [m.split(" strategy (")[0].split()[-1] for m in messages] == ["kernel", "rows"], messages
-    assert all("row graphs do not support aten.cat" in m for m in messages)
-    kernel, rows = torchsim.Stepper(sys), torchsim.Stepper(sys, "rows")
+    assert [m.split(" strategy (")[0].split()[-1] for m in messages] == ["kernel"], messages
+    assert "row graphs do not support aten.cat" in messages[0] and "using the loop strategy" in messages[0]
+    kernel = torchsim.Stepper(sys)
     kernel_states, _ = _compiled_steps(kernel, state, ctrl, steps=1)
-    rows_states, _ = _compiled_steps(rows, state, ctrl, steps=1)
-    assert (kernel.strategy, rows.strategy, looped.strategy) == ("kernel", "rows", "loop")
+    assert (kernel.strategy, looped.strategy) == ("kernel", "loop")
     assert looped.parts.sizes(state) == [2, 2, 2, 2]
-    steppers = {"kernel": (kernel, kernel_states), "rows": (rows, rows_states), "loop": (looped, looped_states)}
+    steppers = {"kernel": (kernel, kernel_states), "loop": (looped, looped_states)}
     graphs = dict.fromkeys(steppers, 0)
-    for _ in range(4):  # alternating: neither stepper's compiled code disturbs the others', nothing recompiles
+    for _ in range(4):  # alternating: neither stepper's compiled code disturbs the other's, nothing recompiles
         for name, (stepper, states) in steppers.items():
             more, new_graphs = _compiled_steps(stepper, states[-1], ctrl, steps=1)
             states.append(more[-1])
             graphs[name] += new_graphs
-    assert graphs == dict.fromkeys(steppers, 0) and rows.num_row_graphs == 1 and kernel.num_row_graphs == 1
+    assert graphs == dict.fromkeys(steppers, 0) and kernel.num_kernels == 1
     for name, (_, states) in steppers.items():
         worst = _worst_vs_eager(sys, states, ctrl)
         print(f"{method}: max |eager - {name} stepper| over {len(states) - 1} steps {worst:.2e}")
@@ -158,17 +155,19 @@ def test_steps_recording_gradients_run_compiled(method="spring"):
 
 
 def test_strategy_selection():
-    """``auto`` picks the C++ step kernel for spring on CPU (per-env parameters included) and compiled calls for
-    xpbd; a strategy that cannot run the System is refused with the reason (nothing compiles here)."""
+    """``auto`` takes the first strategy of the table for the System's method and device: the C++ step kernel for
+    spring on CPU (per-env parameters included: they are the kernel's inputs) and compiled calls for xpbd; a
+    strategy the table does not list for the System is refused naming those it does (nothing compiles here)."""
     spring = torchsim.load_mjcf(MODEL, method="spring", substeps=2)
     batched = spring.replace(body_mass=spring.body_mass.expand(3, -1))
     xpbd = torchsim.load_mjcf(MODEL, method="xpbd", substeps=2)
-    assert [stepper_module.choose_strategy(s) for s in (spring, batched, xpbd)] == ["kernel", "kernel", "calls"]
-    assert torchsim.Stepper(xpbd).strategy == "calls" and torchsim.Stepper(spring, "eager").strategy == "eager"
-    with pytest.raises(ValueError, match="xpbd method supports"):
+    assert [torchsim.Stepper(s).strategy for s in (spring, batched, xpbd)] == ["kernel", "kernel", "calls"]
+    assert strategies(spring) == ("kernel", "loop", "eager") and strategies(xpbd) == ("calls", "eager")
+    assert torchsim.Stepper(spring, "eager").strategy == "eager"
+    with pytest.raises(ValueError, match=r"the xpbd method on cpu runs as \('calls', 'eager'\)"):
         torchsim.Stepper(xpbd, "loop")
-    with pytest.raises(ValueError, match="unknown strategy"):
-        torchsim.Stepper(spring, "fast")
+    with pytest.raises(ValueError, match="unknown strategy 'rows'"):
+        torchsim.Stepper(spring, "rows")
     # new per-env parameters (set_physics at a reset) keep the stepper's parts: their threads, and which part sizes
     # have compiled, so the next step runs on every thread at once
     looped = torchsim.Stepper(batched, "loop", threads=2)

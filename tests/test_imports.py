@@ -79,7 +79,7 @@ def test_import_graph_has_no_cycle():
     graph = {name: _edges(name, path, modules) for name, path in modules.items()}
     # the walk sees real edges, at module level and inside functions
     assert graph["torchsim.envs.base"] >= {"torchsim", "torchsim.io_urdf"}
-    assert graph["torchsim.stepper"] >= {"torchsim.rows", "torchsim.pipeline", "torchsim.methods"}
+    assert graph["torchsim.execution.stepper"] >= {"torchsim.execution.kernel.step", "torchsim.pipeline"}
     cycle = _cycle(graph)
     assert cycle is None, " -> ".join(cycle)
 
@@ -90,6 +90,21 @@ def test_the_engine_imports_no_recipe_or_env():
     for name in engine:
         reached = {t for t in _edges(name, modules[name], modules) if t.startswith(("torchsim.envs", "torchsim.algos"))}
         assert not reached, f"{name} imports {reached}"
+
+
+#: The physics: what a step computes. How a step runs lives in torchsim.execution, which imports these, never
+#: the other way round; the front door (torchsim/__init__) and the entry points join the two.
+NOT_PHYSICS = ("torchsim.execution", "torchsim.render", "torchsim.envs", "torchsim.algos", "torchsim.train",
+               "torchsim.evaluate", "torchsim.progress")
+
+
+def test_the_physics_imports_no_execution():
+    modules = _modules()
+    physics = [name for name in modules if name != "torchsim" and not name.startswith(NOT_PHYSICS)]
+    assert {"torchsim.pipeline", "torchsim.methods.spring", "torchsim.io_mjcf", "torchsim.spatial"} <= set(physics)
+    for name in physics:
+        reached = {t for t in _edges(name, modules[name], modules) if t.startswith("torchsim.execution")}
+        assert not reached, f"the physics module {name} imports {reached}"
 
 
 def test_the_cycle_finder_finds_cycles():

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 import torchsim.envs
-from torchsim.mujoco_stepper import MujocoStepper
+from torchsim.execution.mujoco import MujocoStepper
 
 
 def _stepper(name: str, dtype=torch.float64) -> MujocoStepper:

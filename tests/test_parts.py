@@ -1,4 +1,4 @@
-"""A batch stepped as parts on worker threads (``torchsim.parts``) gives the whole-batch results exactly.
+"""A batch stepped as parts on worker threads (``torchsim.execution.parts``) gives the whole-batch results exactly.
 
 Eager steps here (the parts machinery does not depend on compilation, and compiling would cost minutes); a compiled
 ``torchsim.Stepper`` (strategies ``loop`` and ``calls``) differs only in which step function each part calls.
@@ -9,7 +9,8 @@ import torch
 
 import torchsim
 from models import ANT, F64
-from torchsim import parts, pipeline
+from torchsim import pipeline
+from torchsim.execution import parts
 
 PART = 40
 BATCH = 3 * PART + 1  # parts of 31, 30, 30, 30: two sizes, shared by two threads

@@ -1,7 +1,7 @@
-"""Every strategy a ``torchsim.Stepper`` runs agrees with the reference step (``torchsim.step``) on every model the
-envs ship: spring through ``rows`` and ``loop``, xpbd through ``calls``; 20 steps, at batch 1 and at a batch of two
-cut into two parts of one env, which two threads step at once (``rows`` steps whole batches: its batch of two runs
-the row graph that serves every batch, its batch of one its own).
+"""Every strategy a ``torchsim.Stepper`` runs agrees with the reference step (``torchsim.step``) on the models the
+envs ship: spring through ``kernel`` (the generated C++) and ``loop``, xpbd through ``calls``; 20 steps, at batch 1
+and at a batch of two cut into two parts of one env, which two threads step at once. And the GPU kernel (the same
+step Program emitted as Triton) on every shipped model, run by Triton's interpreter on CPU tensors.
 
 In float64, against the reference's own rounding: a strategy evaluates the step with other formulas for a few
 primitives (the per-component forms that ``torch.compile`` and row graphs trace, ``torchsim.spatial``) and the row
@@ -13,15 +13,14 @@ difference from the reference by 10x that spread, and at least 1e-8 (the spread 
 starts; float32 rounding alone moves velocities by ~1e-3 m/s in a step of the stiff springs, so float32 would hide
 errors of that size).
 
-The steppers run with the ``eager`` backend (``Stepper(..., backend=...)``): each strategy's own graphs (the row
-graph; dynamo's graph of the whole step with its ``while_loop``; the separate substep and step end), substep loop
-and parts, executed op by op. Inductor's code generation for them takes minutes per model on two cores; it is
-checked in float32 on a small model in ``test_compile.py``. Run op by op, a model still costs 30-140 s of CPU
-(a row graph is ~7,600 row ops a substep), so CI runs five models that between them hold every joint kind, contact
-shape and loader (the Ant: free root and hinges, capsule and sphere contacts; the Humanoid: 2- and 3-hinge joints;
-the Hopper: slides; Fetch: boxes; the UR5e: a URDF arm without contacts), ``rows`` on the Ant and the Humanoid
-only. ``TORCHSIM_TEST_ALL_MODELS=1`` runs every shipped model and strategy, and ``TORCHSIM_TEST_BACKEND=inductor``
-the generated code (about five minutes of compiling per model).
+``loop`` and ``calls`` run with the ``eager`` backend (``Stepper(..., backend=...)``): their own graphs (dynamo's
+graph of the whole step with its ``while_loop``; the separate substep and step end), substep loop and parts,
+executed op by op (inductor's code generation for them takes minutes per model on two cores; it is checked in
+float32 on a small model in ``test_compile.py``). CI runs five models that between them hold every joint kind,
+contact shape and loader (the Ant: free root and hinges, capsule and sphere contacts; the Humanoid: 2- and 3-hinge
+joints; the Hopper: slides; Fetch: boxes; the UR5e: a URDF arm without contacts), the Triton kernel all twelve.
+``TORCHSIM_TEST_ALL_MODELS=1`` runs every shipped model and strategy, and ``TORCHSIM_TEST_BACKEND=inductor`` the
+generated code of ``loop`` and ``calls`` (about five minutes of compiling per model).
 """
 
 import os
@@ -33,18 +32,16 @@ import torch
 
 import torchsim
 from torchsim import spatial
+from torchsim.execution.kernel import emit_triton
+from torchsim.execution.kernel.step import StepKernel
 from models import SHIPPED, load_model, random_q
 
 BACKEND = os.environ.get("TORCHSIM_TEST_BACKEND", "eager")
 ALL_MODELS = bool(os.environ.get("TORCHSIM_TEST_ALL_MODELS"))
 CI_MODELS = ("ant", "humanoid", "hopper", "fetch", "ur5e")
-# ``rows`` runs the substep row graph that ``kernel`` turns into C++ (checked on all five), with the step's terms and
-# end as dynamo graphs; op by op it costs 30-80 s a model, so CI runs it on the two with the most joint kinds.
-ROWS_CI_MODELS = ("ant", "humanoid")
-CASES = [("spring", "kernel"), ("spring", "rows"), ("spring", "loop"), ("xpbd", "calls")]
+CASES = [("spring", "kernel"), ("spring", "loop"), ("xpbd", "calls")]
 PARAMS = [pytest.param(path, method, strategy, id=f"{path.stem}-{method}-{strategy}")
-          for path in SHIPPED if ALL_MODELS or path.stem in CI_MODELS
-          for method, strategy in CASES if ALL_MODELS or strategy != "rows" or path.stem in ROWS_CI_MODELS]
+          for path in SHIPPED if ALL_MODELS or path.stem in CI_MODELS for method, strategy in CASES]
 STEPS = 20
 
 
@@ -81,7 +78,7 @@ def _start(path, method: str, batch: int):
 def _trajectory(step, state, ctrl, batch: int) -> list:
     states = [torchsim.State(*(x[:batch] for x in state))]
     with torch.no_grad():  # as collectors step envs
-        for t in range(STEPS):
+        for t in range(len(ctrl)):
             states.append(step(states[-1], ctrl[t, :batch]))
     return states
 
@@ -95,24 +92,44 @@ def test_strategy_agrees_with_reference(path, method, strategy):
     sys, start, ctrl = _start(path, method, batch=2)
     stepper = torchsim.Stepper(sys, strategy, part_size=1, threads=2, backend=BACKEND)
     assert stepper.strategy == strategy
+    for batch in (1, 2):
+        if strategy in ("loop", "calls"):
+            assert stepper.parts.sizes(torchsim.State(*(x[:batch] for x in start))) == [1] * batch
+        _check_against_reference(f"{path.stem} {method} {strategy} batch {batch}", sys, stepper, start, ctrl, batch,
+                                 min_move=1e-3)
 
-    def reference(state, ctrl):
-        return torchsim.step(sys, state, ctrl)
 
+def _check_against_reference(what: str, sys, step, start, ctrl, batch: int, min_move: float) -> None:
+    """``step`` from ``start`` under ``ctrl`` against the reference step, within 10x the reference's own spread
+    (at least 1e-8), the same envs flagged diverged, and the bodies moving at least ``min_move`` [m]."""
     def reference_per_component(state, ctrl):
         with spatial.component_formulas():
             return torchsim.step(sys, state, ctrl)
 
-    for batch in (1, 2):
-        if strategy in ("loop", "calls"):
-            assert stepper.parts.sizes(torchsim.State(*(x[:batch] for x in start))) == [1] * batch
-        expected = _trajectory(reference, start, ctrl, batch)
-        spread = _worst(expected, _trajectory(reference_per_component, start, ctrl, batch))
-        got = _trajectory(stepper, start, ctrl, batch)
-        worst = _worst(expected, got)
-        moved = (expected[-1].x_pos - expected[0].x_pos).abs().max().item()
-        print(f"{path.stem} {method} {strategy} batch {batch}: max |reference - {strategy}| {worst:.1e}, the "
-              f"reference's own spread {spread:.1e}, over {STEPS} steps; bodies moved up to {moved:.2f} m")
-        assert torch.equal(expected[-1].diverged, got[-1].diverged)
-        assert moved > 1e-3
-        assert worst <= max(1e-8, 10 * spread)
+    expected = _trajectory(lambda state, ctrl: torchsim.step(sys, state, ctrl), start, ctrl, batch)
+    spread = _worst(expected, _trajectory(reference_per_component, start, ctrl, batch))
+    got = _trajectory(step, start, ctrl, batch)
+    worst = _worst(expected, got)
+    moved = (expected[-1].x_pos - expected[0].x_pos).abs().max().item()
+    print(f"{what}: max |reference - it| {worst:.1e}, the reference's own spread {spread:.1e}, over {len(ctrl)} "
+          f"steps; bodies moved up to {moved:.2e} m")
+    assert torch.equal(expected[-1].diverged, got[-1].diverged)
+    assert moved > min_move
+    assert worst <= max(1e-8, 10 * spread)
+
+
+#: Steps of the Triton kernel: the interpreter runs each row op as a NumPy call (~7 us), ~150k of them in an Ant step.
+TRITON_STEPS = 2
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: p.stem)
+def test_gpu_kernel_agrees_with_reference(path, monkeypatch, tmp_path):
+    """The step Program emitted as Triton, as a GPU runs it (one launch a step), run by Triton's interpreter on CPU
+    tensors: 2 float64 steps of 3 envs in one partial block of 4, against the reference by the bound above."""
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))
+    sys, start, ctrl = _start(path, "spring", batch=3)
+    kernel = StepKernel(sys, emitter=emit_triton, block=4)
+    assert "@triton.jit" in next((tmp_path / "triton").glob("step_*.py")).read_text()
+    _check_against_reference(f"{path.stem} triton (interpreted)", sys, lambda state, ctrl: kernel(sys, state, ctrl),
+                             start, ctrl[:TRITON_STEPS], 3, min_move=1e-5)

@@ -13,7 +13,7 @@ from torchsim.io_urdf import UnsupportedURDFError, load_urdf
 from torchsim.kinematics import mj_body_poses
 from torchsim.pipeline import init, step
 from torchsim.state import State
-from torchsim.stepper import Stepper
+from torchsim.execution import Stepper
 from torchsim.system import System
 
 __all__ = ["load_mjcf", "load_urdf", "UnsupportedURDFError", "init", "step", "Stepper", "State", "System",

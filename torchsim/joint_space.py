@@ -175,7 +175,7 @@ def _hinge_friction(sys: System, mat: torch.Tensor, a: torch.Tensor, rhs: torch.
     qd = (qd_raw + spatial.matvec(a, mu)).index_select(0, dofs)
     w = a_f.index_select(0, dofs) - (a_f.unsqueeze(2) * x_f.unsqueeze(1)).sum(0)  # (F, F, B), A symmetric
     limit = friction_h.index_select(0, dofs)
-    p = []  # (1, B) slices, not (B,) rows: row graphs (torchsim.rows) cannot read a (1,)-shaped constant
+    p = []  # (1, B) slices, not (B,) rows: row graphs (torchsim.execution.kernel.rows) cannot read a (1,)-shaped constant
     for k in range(dofs.shape[0]):
         row = slice(k, k + 1)
         stop = -(qd[row] + sum(w[row, j] * p[j] for j in range(k))) / w[row, k]

@@ -1,4 +1,5 @@
-"""``init`` and ``step``: the physics pipeline, the reference for every way of running it (``torchsim.stepper``).
+"""``init`` and ``step``: the physics pipeline, the reference for every way of running it
+(``torchsim.execution``).
 
 The public state is batch-first (``State``); the substeps run in the lanes layout (``torchsim.lanes``): ``step``
 converts the bodies on entry and ``finish`` converts them back.
@@ -7,7 +8,6 @@ converts the bodies on entry and ``finish`` converts them back.
 import warnings
 
 import torch
-from torch._higher_order_ops.while_loop import while_loop
 
 from torchsim import lanes
 from torchsim.kinematics import Bodies, forward, joint_frames, read_q, with_world
@@ -70,36 +70,34 @@ def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
 
 SLOW_COMPILE_WARNING = (
     "torchsim.step is being traced by torch.compile: the step then compiles as loop nests over (components, batch), "
-    "several times slower on CPU than the engine's own compiled step. For that, build a torchsim.Stepper(sys) once "
-    "and call it (envs: stepper='auto') without torch.compile around it.")
+    "its substeps unrolled (minutes to build), several times slower on CPU than the engine's own compiled step. For "
+    "that, build a torchsim.Stepper(sys) once and call it (envs: stepper='auto') without torch.compile around it.")
 # dynamo runs warnings.warn after the graph instead of breaking the graph on it (fullgraph=True would fail)
 torch._dynamo.config.reorderable_logging_functions.add(warnings.warn)
 
 
-def run_substeps(sys: System, state: State, ctrl: torch.Tensor, substep=None, finish_step=None) -> State:
-    """``step`` without its input check: the substeps from ``state`` under ``ctrl``, then ``finish_step``
-    (default :func:`finish`); ``substep``: the method's substep function (default: the eager one), e.g. compiled.
+def run_substeps(sys: System, state: State, ctrl: torch.Tensor, substep=None, finish_step=None,
+                 repeat=None) -> State:
+    """``step`` without its input check, the outline every way of running a step follows: the method's step terms
+    from the poses at the step's start, ``sys.substeps`` substeps, then ``finish_step`` (default :func:`finish`).
 
-    Compiled as a whole, the substeps are one ``while_loop`` in the generated code, so a step returns to Python
-    once, not once per substep (the Python side of a compiled call cost about a quarter of a 512-env substep).
-    Where autograd records the step, they stay a Python loop: in torch 2.13 ``while_loop``'s gradients with respect
-    to tensors its body captures came out wrong.
+    ``substep``: the method's substep function (default: the eager one), e.g. compiled; ``repeat(n, fn, bodies)``:
+    how the substeps are repeated (default: a Python loop; ``torchsim.execution.compiled`` passes a ``while_loop``).
     """
     method = METHODS[sys.method]
-    substep, finish_step = substep or method.substep, finish_step or finish
+    substep, finish_step, repeat = substep or method.substep, finish_step or finish, repeat or repeat_in_python
     h = sys.substep_timestep
     bodies, ctrl = to_lanes(state, ctrl)
     terms = method.step_terms(sys, bodies, lanes.to_lanes(state.q), h)
-    if torch.compiler.is_compiling() and not records_grad(sys, state, ctrl):
-        def body(i, *b):
-            return i + 1, *substep(sys, Bodies(*b), ctrl, terms, h)
-
-        start = torch.zeros((), dtype=torch.int64, device=ctrl.device)
-        bodies = Bodies(*while_loop(lambda i, *b: i < sys.substeps, body, (start, *bodies))[1:])
-    else:
-        for _ in range(sys.substeps):
-            bodies = substep(sys, bodies, ctrl, terms, h)
+    bodies = repeat(sys.substeps, lambda b: substep(sys, b, ctrl, terms, h), bodies)
     return finish_step(sys, state, bodies)
+
+
+def repeat_in_python(n: int, fn, bodies: Bodies) -> Bodies:
+    """``fn`` applied ``n`` times to ``bodies``."""
+    for _ in range(n):
+        bodies = fn(bodies)
+    return bodies
 
 
 def to_lanes(state: State, ctrl: torch.Tensor) -> tuple[Bodies, torch.Tensor]:

@@ -91,7 +91,7 @@ def _compiling() -> bool:
 
 @contextlib.contextmanager
 def component_formulas():
-    """Use the per-component formulas outside ``torch.compile`` too (``torchsim.rows`` traces them)."""
+    """Use the per-component formulas outside ``torch.compile`` too (``torchsim.execution.kernel.rows`` traces them)."""
     token = _COMPONENT_FORMULAS.set(True)
     try:
         yield

@@ -13,12 +13,9 @@ class Method(NamedTuple):
             ``System.substep_timestep``).
         substep: ``(sys, bodies, ctrl, terms, h) -> bodies``: one substep, lanes layout.
         default_substep_timestep: the substep length [s] ``load_mjcf`` aims at (substeps = ceil(timestep / it)).
-        strategies: the compiled strategies of ``torchsim.Stepper`` the method supports, the fastest first
-            (``torchsim.stepper.choose_strategy``); the reference (eager) step serves every method.
     """
 
     name: str
     step_terms: Callable
     substep: Callable
     default_substep_timestep: float
-    strategies: tuple[str, ...]

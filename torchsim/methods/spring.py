@@ -224,6 +224,4 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     return integrator.integrate_positions(after, h)
 
 
-#: On CPU the step as generated C++, else its substep as an inductor row graph; the compiled step with its substeps
-#: in a loop elsewhere.
-METHOD = Method("spring", step_terms, substep, default_substep_timestep=5e-4, strategies=("kernel", "rows", "loop"))
+METHOD = Method("spring", step_terms, substep, default_substep_timestep=5e-4)

@@ -254,6 +254,4 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     return moved
 
 
-#: Compiled substeps called from Python: its step compiled as one loop kept gcc busy for over 10 minutes without
-#: finishing (spring's builds in ~2.5); its row graph was not tried.
-METHOD = Method("xpbd", step_terms, substep, default_substep_timestep=5e-4, strategies=("calls",))
+METHOD = Method("xpbd", step_terms, substep, default_substep_timestep=5e-4)

@@ -1,23 +1,26 @@
-"""A whole step as one generated C++ function: ``torchsim.step`` for a spring System on CPU, its per-env parameters
-inputs of the function and its shared ones constants in it.
+"""A whole step as one generated kernel: ``torchsim.step`` for a spring System, its per-env parameters inputs of
+the kernel and its shared ones constants in it; C++ on a CPU (``emit_cpp``), Triton on a GPU (``emit_triton``).
 
-The step is three row graphs (``torchsim.rows``) of the reference pipeline's own functions, chained by
-``torchsim.row_code`` into one function that reads the public state and controls and writes the next state:
+The step is three row graphs (``rows``) of the reference pipeline's own phases, chained into one
+:class:`~torchsim.execution.kernel.program.Program` that reads the public state and controls and writes the next
+state:
 
 1. the method's step terms, from the poses and coordinates at the step's start (the terms every env shares fold
    into the substep as constants; the per-env ones are rows);
-2. the substep, repeated ``sys.substeps`` times on rows that stay in registers and on the stack;
+2. the substep, repeated ``sys.substeps`` times on rows that stay in registers;
 3. ``pipeline.finish_lanes``: ``q, qd`` read back, divergence contained.
 
-A step is then one call from Python, at any batch size; its build takes seconds where inductor's compile of the
-substep alone takes minutes (``docs/benchmarks.md``). The built library is kept on disk (``torchsim.row_cache``):
-a later process with the same model, dtype, torch and torchsim source loads it in milliseconds.
+A step is then one call from Python (one launch on a GPU), at any batch size; its C++ build takes seconds where
+inductor's compile of the substep alone takes minutes (``docs/benchmarks.md``). The built code is kept on disk
+(``cache``): a later process with the same model, dtype, torch and torchsim source loads it in milliseconds.
 """
 
 import torch
 import torch.utils._pytree as pytree
 
-from torchsim import lanes, pipeline, progress, row_cache, row_code, rows
+from torchsim import lanes, pipeline, progress
+from torchsim.execution.kernel import cache, emit_cpp, emit_triton, rows
+from torchsim.execution.kernel.program import Layout, Program
 from torchsim.kinematics import Bodies, with_world
 from torchsim.methods import METHODS
 from torchsim.state import State
@@ -34,49 +37,59 @@ def split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
             for x, shape in zip(poses.split([shape[:-1].numel() for shape in shapes]), shapes)]
 
 
-class StepKernel:
-    """``torchsim.step(sys, state, ctrl)`` as one generated C++ function for Systems like ``sys`` on CPU: its shared
-    parameters' values are built in, its per-env parameters (``set_physics``) are inputs, so a System with other
-    per-env values (``kernel(other_sys, state, ctrl)``) runs on the same function. ``threads`` threads share each
-    batch. Raises ``rows.Unsupported`` when the step cannot be expressed."""
+#: The code generator for each device type: its module has ``source(program)``, ``path(key)``,
+#: ``build(code, what, key)`` and ``Kernel(path, dtype, **options)``.
+EMITTERS = {"cpu": emit_cpp, "cuda": emit_triton}
 
-    def __init__(self, sys: System, threads: int = 1):
-        if sys.device.type != "cpu":
-            raise rows.Unsupported("a step kernel runs on CPU")
+
+class StepKernel:
+    """``torchsim.step(sys, state, ctrl)`` as one generated kernel for Systems like ``sys`` on its device: its shared
+    parameters' values are built in, its per-env parameters (``set_physics``) are inputs, so a System with other
+    per-env values (``kernel(other_sys, state, ctrl)``) runs on the same code. ``emitter``: the code generator
+    (default: the device's, :data:`EMITTERS`; ``emit_triton`` on CPU tensors runs in Triton's interpreter);
+    ``options`` go to its ``Kernel`` (C++: ``threads`` that share each batch; Triton: ``block``, ``num_warps``).
+    Raises ``rows.Unsupported`` when the step cannot be expressed."""
+
+    def __init__(self, sys: System, emitter=None, **options):
+        emitter = emitter or EMITTERS.get(sys.device.type)
+        if emitter is None:
+            raise rows.Unsupported(f"no step kernel is generated for {sys.device.type} devices")
         # traced at two envs (env 0's per-env parameters, the model's rest state): only shapes matter, and which
         # terms are per env
         self.where = sys.per_env_parameters()
         per_env = [sys.parameter(w) for w in self.where]
         probe_sys = sys.with_parameters(self.where, [x[:1].expand(2, *x.shape[1:]).contiguous() for x in per_env])
-        state = pipeline.init(probe_sys, sys.q0.expand(2, -1).contiguous(), torch.zeros(2, sys.nv, dtype=sys.dtype))
-        ctrl = torch.zeros(2, sys.nu, dtype=sys.dtype)
+        q0 = sys.q0.expand(2, -1).contiguous()
+        state = pipeline.init(probe_sys, q0, torch.zeros(2, sys.nv, dtype=sys.dtype, device=sys.device))
+        ctrl = torch.zeros(2, sys.nu, dtype=sys.dtype, device=sys.device)
         params = [lanes.to_lanes(probe_sys.parameter(w)) for w in self.where]
         inputs = [*pipeline.to_lanes_state(state), lanes.to_lanes(ctrl), *params]
         # the key holds the shared parameters' values and the per-env ones' shapes (their values are inputs)
         shapes_only = sys.with_parameters(self.where, [x.new_zeros(x.shape[1:]) for x in per_env])
-        key = row_cache.content_key(shapes_only, inputs, {"step kernel": row_code.compiler_command()}, self.where)
-        path = row_code.library_path(key)
+        key = cache.content_key(shapes_only, inputs, {"step kernel": emitter.settings()}, self.where)
+        path = emitter.path(key)
         what = f"the {sys.method} step ({sys.num_bodies} bodies, {sys.dtype}" + (
             f", {len(self.where)} per-env parameters)" if self.where else ")")
         if path.is_file():
             progress.log.info("loaded %s from %s", what, path)
         else:
-            layouts = [row_code.Tensor.of(x) for x in inputs]
+            layouts = [Layout.of(x) for x in inputs]
             with progress.announce(f"{what}: tracing its row graphs"):
                 graphs = _graphs(probe_sys, self.where, state, ctrl, params)
-            program = _wire(row_code.Program(sys.dtype, layouts, layouts[:7]), *graphs, len(params))
-            path = row_code.build(program.source(), what, key)
-        self.kernel = row_code.Kernel(path, sys.dtype, threads)
-        self.substeps = sys.substeps
+            program = _wire(Program(sys.dtype, layouts, layouts[:7]), *graphs, len(params))
+            path = emitter.build(emitter.source(program), what, key)
+        self.kernel = emitter.Kernel(path, sys.dtype, **options)
+        self.substeps, self.device = sys.substeps, sys.device
         self.fields = [(x.shape[1:], x.dtype) for x in (*state, ctrl)]
 
     def __call__(self, sys: System, state: State, ctrl: torch.Tensor) -> State:
         names = [f"state.{field}" for field in State._fields] + ["ctrl"]
-        for name, x, (shape, dtype) in zip(names, (*state, ctrl), self.fields):
-            if x.shape[1:] != shape or x.dtype != dtype or x.device.type != "cpu":  # the code reads raw memory
-                raise ValueError(f"{name} must be a CPU {dtype} tensor of shape (B, {', '.join(map(str, shape))})"
-                                 f" for this System's step kernel, got {x.dtype} {tuple(x.shape)} on {x.device}")
         batch = ctrl.shape[0]
+        for name, x, (shape, dtype) in zip(names, (*state, ctrl), self.fields):
+            if x.shape != (batch, *shape) or x.dtype != dtype or x.device != self.device:  # the code reads raw memory
+                raise ValueError(f"{name} must be a {dtype} tensor of shape ({batch}, {', '.join(map(str, shape))}) "
+                                 f"on {self.device} for this System's step kernel (ctrl has {batch} envs), got "
+                                 f"{x.dtype} {tuple(x.shape)} on {x.device}")
         params = [sys.parameter(w) for w in self.where]
         for w, x in zip(self.where, params):
             if x.shape[0] != batch:
@@ -135,7 +148,7 @@ def _graphs(sys: System, where: list[tuple], state: State, ctrl: torch.Tensor, p
     return graphs, carried
 
 
-def _wire(program: row_code.Program, graphs, carried, count: int) -> row_code.Program:
+def _wire(program: Program, graphs, carried, count: int) -> Program:
     """The Program: inputs 0-6 the state, 7 the controls, 8.. the per-env parameters; outputs the next state."""
     terms_graph, substep_graph, finish_graph = graphs
     params = [lambda r, k=k: ("input", 8 + k, r) for k in range(count)]

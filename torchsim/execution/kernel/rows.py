@@ -1,20 +1,18 @@
 """Row graphs: a lanes-layout function rewritten so that every op acts on one row of ``B`` envs.
 
 In the lanes layout (``torchsim.lanes``) a tensor is ``(*S, B)``: a few small static axes ``S`` (components,
-bodies, joints) in front of the batch. Compiled as it is, inductor runs each op as a loop nest over ``S`` and ``B``
-and keeps ~120 intermediate buffers per substep in memory, allocated on every call (measured in commit
-cd4e6f0, its ``docs/benchmarks.md``). A row graph unrolls ``S``: each tensor becomes an array of ``(B,)`` rows, so gathers, concatenations,
-index sums and views become bookkeeping at trace time, and the model's constants fold into the arithmetic (a joint
-mode of 0 removes the terms it multiplies). What is left is elementwise ops on rows, which inductor fuses into a
-single loop over the batch whose intermediates stay in registers and on the stack.
+bodies, joints) in front of the batch. A row graph unrolls ``S``: each tensor becomes an array of ``(B,)`` rows, so
+gathers, concatenations, index sums and views become bookkeeping at trace time, and the model's constants fold into
+the arithmetic (a joint mode of 0 removes the terms it multiplies). What is left is a straight line of elementwise
+ops on rows, which ``program`` lowers to its row-op contract and the emitters turn into one loop over the batch whose
+intermediates stay in registers.
 
-The System's tensors are baked into the graph as constants, so a row graph belongs to one System's values:
-:func:`system_key` says when it must be rebuilt. The small axes are static; the batch size is not, so one graph serves
-a training batch and a small evaluation batch alike. Batched (per-env) System parameters are not supported
-(``torchsim.Stepper`` runs those with its other strategies).
+Tensors the traced function closes over (the System's shared values) are baked into the graph as constants; per-env
+parameters enter as lanes inputs. The small axes are static; the batch size is not, so one graph serves a training
+batch and a small evaluation batch alike.
 
 The module runs past 400 lines because its two halves are one mechanism: the interpreter's rule for each aten op
-on rows, and the tracing around it that turns a lanes function into the row graph inductor compiles.
+on rows, and the tracing around it that turns a lanes function into a row graph.
 """
 
 import math
@@ -22,14 +20,11 @@ import operator
 
 import numpy as np
 import torch
-from torch._subclasses.fake_tensor import FakeTensorMode
 from torch.fx import GraphModule, Interpreter
-from torch.fx.experimental.symbolic_shapes import DimDynamic, ShapeEnv, StatelessSymbolicContext
 from torch.fx.experimental.proxy_tensor import disable_proxy_modes_tracing, make_fx
 
 from torchsim import spatial
 from torchsim.lanes import per_env
-from torchsim import row_cache
 
 aten = torch.ops.aten
 
@@ -438,42 +433,6 @@ def _batch_sizes_symbolic(graph: GraphModule, args: list) -> None:
             node.kwargs = {k: sizes(v) for k, v in node.kwargs.items()}
 
 
-def compile_row_graph(fn, args: list, options: dict, content_key: str | None = None):
-    """``row_graph(fn, args)`` compiled by inductor (``options``) for the shapes, strides and dtypes of the tensors
-    ``args`` except their batch size (the last axis of the ``per_env`` ones), which the compiled code reads from its
-    inputs: one compiled graph serves every batch of more than one env. ``fn`` returns
-    one lanes tensor ``(*S, B)``, and so does the compiled function.
-
-    One output, not several: inductor then writes each row once from its single loop, where separate outputs cost
-    extra copy loops and an allocation each (commit cd4e6f0). The compiled function has no guards, so a caller that
-    may pass other inputs keys its compiled graphs on them; without dynamo around it, a call costs ~100 us less
-    than through ``torch.compile``.
-
-    ``content_key`` (``torchsim.row_cache.content_key``): the row graph is kept on disk (``torchsim.row_cache``),
-    and inductor's compiled code in its own on-disk cache, so another process with the same key skips both the
-    graph's build and inductor's code generation and C++ compile."""
-    from torch._inductor import compile as inductor_compile  # imported on use: it takes ~1 s
-
-    graph = None if content_key is None else row_cache.load(content_key)
-    if graph is None:
-        graph = row_graph(lambda *xs: (fn(*xs),), args)
-        for node in graph.graph.nodes:  # inductor traces the graph again under its own fake mode
-            node.meta.pop("val", None)
-            node.meta.pop("tensor_meta", None)
-        if content_key is not None:
-            graph = row_cache.store(content_key, graph)
-    # fake inputs with a shape environment (without one, inductor's on-disk graph cache is bypassed), their batch
-    # axis symbolic. Its size hint is TRACE_BATCH whatever the batch at hand: inductor decides from the hint whether
-    # the loop runs on several threads, and the compiled code (kept on disk, keyed without the batch size) serves
-    # every batch; compiled first at batch 2 it came out single-threaded, 15% slower at batch 2048.
-    fake_mode = FakeTensorMode(allow_non_fake_inputs=True, shape_env=ShapeEnv())
-    fakes = [fake_mode.from_tensor(_probe(x), symbolic_context=StatelessSymbolicContext(
-        dynamic_sizes=[DimDynamic.STATIC] * (x.ndim - 1) + [DimDynamic.DYNAMIC if per_env(x) else DimDynamic.STATIC]))
-        for x in args]
-    compiled = inductor_compile(graph, fakes, options=options)
-    return lambda *inputs: compiled(*inputs)[0]
-
-
 def _input_cells(x: torch.Tensor) -> np.ndarray:
     rows = x.reshape(-1, x.shape[-1]).unbind(0)
     cells = np.empty(len(rows), dtype=object)
@@ -493,11 +452,3 @@ def _stack_rows(cells: np.ndarray, like: torch.Tensor) -> torch.Tensor:
     if cells.size == 0:  # an empty output (a model without hinge dofs: (0, B) rates)
         return torch.zeros_like(like)
     return torch.stack([row(r) if cells.ndim == 1 else _stack_rows(r, like[0]) for r in cells])
-
-
-def system_key(sys) -> tuple:
-    """What a row graph baked in from ``sys``: the identity and version of each of its tensors, and its other values.
-
-    A tensor edited in place changes version; the caller keeps ``sys`` alive with the graph, so no other tensor
-    can reuse an address while the key is in use."""
-    return tuple((x.data_ptr(), x._version) if isinstance(x, torch.Tensor) else repr(x) for x in sys.leaves())

@@ -1,8 +1,9 @@
-"""Row graphs (``torchsim.rows``): the spring substep rewritten as ops on rows of envs gives the substep's numbers.
+"""Row graphs (``torchsim.execution.kernel.rows``): the spring substep rewritten as ops on rows of envs gives the
+substep's numbers.
 
-Run eagerly here (building a row graph takes seconds, compiling one minutes); ``test_compile.py`` runs the compiled
-row-graph step as ``torchsim.Stepper`` uses it. Every shipped model's substep runs through the row-graph
-interpreter, so an op it does not cover shows here, not at step time.
+Run eagerly here (building a row graph takes seconds); ``test_strategies.py`` runs the kernels generated from them.
+Every shipped model's substep runs through the row-graph interpreter, so an op it does not cover shows here, not at
+step time.
 """
 
 import numpy as np
@@ -12,7 +13,7 @@ import torch.utils._pytree as pytree
 
 import torchsim
 from models import ANT, F64, SHIPPED, load_model, random_q
-from torchsim import rows, stepper
+from torchsim.execution.kernel import rows
 from torchsim.kinematics import with_world
 from torchsim.lanes import to_lanes
 from torchsim.methods import METHODS
@@ -76,39 +77,7 @@ def test_one_row_graph_serves_every_batch():
         assert max((a - b).abs().max().item() for a, b in zip(expected, got)) < 1e-11
 
 
-def test_packed_inputs_unpack_to_the_leaves():
-    """The row-graph step passes a substep's controls and terms as two tensors, per-env rows and shared rows; the
-    graph's unpacking gives back every leaf (None included) with its values and shape."""
-    _, leaves, _, _ = _substep_inputs(ANT, batch=3)
-    leaves = [None, *leaves[4:]]  # the controls and terms, as the step flattens them
-    per_env_rows, shared_rows, _, unpack = stepper._pack(leaves)
-    assert per_env_rows.shape[-1] == 3 and shared_rows.shape[-1] == 1
-    back = unpack(per_env_rows, shared_rows)
-    assert len(back) == len(leaves) and sum(x is None for x in leaves) >= 2  # the controls' and a term's
-    assert all(b is None if a is None else a.shape == b.shape and torch.equal(a, b) for a, b in zip(leaves, back))
-
-
-def test_system_key_follows_values():
-    """A row graph bakes the System in, so its key changes when a tensor of it is edited in place or replaced."""
-    sys = torchsim.load_mjcf(str(ANT), dtype=F64)
-    key = rows.system_key(sys)
-    assert rows.system_key(sys.replace()) == key  # a copy sharing the tensors: the same graph serves it
-    assert rows.system_key(sys.replace(body_mass=sys.body_mass.clone())) != key
-    sys.contact_groups[0].friction.mul_(0.5)
-    assert rows.system_key(sys) != key
-
-
 def test_row_graphs_refuse_the_batch_axis():
     """Ops along the batch axis cannot be unrolled: a clear error, not a wrong graph."""
     with pytest.raises(NotImplementedError, match="batch axis"):
         rows.row_graph(lambda x: (x.sum(-1, keepdim=True).expand(3, 4),), [torch.ones(3, 4)])
-
-
-def test_batched_systems_take_the_kernel_not_a_row_graph():
-    """Per-env parameters cannot be baked into a row graph: such Systems take the C++ step kernel (their per-env
-    parameters its inputs), and asking for a row graph names why it cannot be."""
-    sys = torchsim.load_mjcf(str(ANT))
-    batched = sys.replace(body_mass=sys.body_mass.expand(4, -1))
-    assert stepper.choose_strategy(sys) == "kernel" and stepper.choose_strategy(batched) == "kernel"
-    with pytest.raises(ValueError, match="parameters shared by every env"):
-        torchsim.Stepper(batched, "rows")

@@ -1,13 +1,15 @@
-"""Generated row code (``torchsim.row_code``): every op it translates gives torch's own result on the same rows.
+"""The generated kernels (``torchsim.execution.kernel``): every op of the row-op contract, emitted as C++ (the CPU
+kernel) and as Triton (the GPU kernel, run here by Triton's interpreter on CPU tensors), gives torch's own result
+on the same rows.
 
-One row graph holds every op (``torchsim.rows.row_graph`` of a lanes function), so one C++ build serves the file (a
-few seconds). Arithmetic and selections must match eager torch bit for bit (the generated code uses no fast-math and
-no FMA contraction). Library functions may differ by an ulp or two (the bound: 4 ulps of the dtype): the generated
-square root is IEEE's, correctly rounded, where torch's CPU kernel (MKL's) is within an ulp (it differs from the
-correctly rounded root in ~17% of random float32 values), and the transcendental functions call SLEEF's u10
-(1-ulp) vector functions. The rows hold NaN, +-inf,
-+-0 and values across many magnitudes, so NaN handling (``minimum``/``maximum`` propagate it, as torch's do) is
-checked too; batches of 1, 5 and 37 envs cover whole and partial vector blocks, and a strided (batch-first) input.
+One row graph holds every op (``rows.row_graph`` of a lanes function), so one build per emitter and dtype serves the
+file (a few seconds). C++ arithmetic and selections must match eager torch bit for bit (no fast-math, no FMA
+contraction). Library functions may differ by an ulp or two (the bound: 4 ulps of the dtype): the generated square
+root is IEEE's, correctly rounded, where torch's CPU kernel (MKL's) is within an ulp (it differs from the correctly
+rounded root in ~17% of random float32 values), and the transcendental functions call SLEEF's u10 (1-ulp) vector
+functions in C++ (the C library's, lane by lane, where a CPU lacks AVX2), NumPy's in the Triton interpreter (libdevice's on a GPU). The rows hold NaN, +-inf, +-0 and
+values across many magnitudes, so NaN handling (``minimum``/``maximum`` propagate it, as torch's do) is checked too;
+batches of 1, 5 and 37 envs cover whole and partial vector blocks, and a strided (batch-first) input.
 """
 
 import hashlib
@@ -17,9 +19,13 @@ import torch
 
 import torchsim
 import torchsim.envs
-from torchsim import lanes, row_code, rows
+from torchsim import lanes
+from torchsim.execution.kernel import emit_cpp, emit_triton, program as program_module, rows
+from torchsim.execution.kernel.program import Layout, Program
 
 SPECIAL = [float("nan"), float("inf"), -float("inf"), 0.0, -0.0, 1e-30, -3.5, 2.0, 1e6]
+#: ``cpp-generic``: the C++ a CPU without AVX2 gets (16-byte generic vectors, the C library's functions lane by lane)
+EMITTERS = {"cpp": (emit_cpp, {}), "cpp-generic": (emit_cpp, {}), "triton": (emit_triton, {"block": 8})}
 
 
 def _ops(x: torch.Tensor, y: torch.Tensor, p: torch.Tensor):
@@ -36,29 +42,38 @@ def _ops(x: torch.Tensor, y: torch.Tensor, p: torch.Tensor):
     return torch.stack(results + [m.to(x.dtype) for m in masks])
 
 
-@pytest.fixture(scope="module", params=[torch.float32, torch.float64], ids=str)
-def kernel(request):
-    dtype = request.param
-    probe = torch.ones(3, 2, dtype=dtype)
-    graph = rows.row_graph(lambda xs: (_ops(xs[0], xs[1], xs[2]),), [probe])
-    outputs = _ops(probe[0], probe[1], probe[2])
-    layout_in = row_code.Tensor.of(probe)
-    layout_out = row_code.Tensor.of(outputs)
-    # a second input layout: the rows of a batch-first (B, 3) tensor, as the step kernel reads the public state
-    layout_strided = row_code.Tensor.of(lanes.to_lanes(torch.ones(2, 3, dtype=dtype)))
-    built = {}
-    for name, layout in (("contiguous", layout_in), ("strided", layout_strided)):
-        program = row_code.Program(dtype, [layout], [layout_out])
-        program.store(0, program.add(graph, [lambda r: ("input", 0, r)])[0])
-        code = program.source()
-        key = hashlib.sha256(repr((code, row_code.compiler_command())).encode()).hexdigest()[:32]
-        built[name] = row_code.Kernel(row_code.build(code, f"the op test ({name}, {dtype})", key), dtype)
-    return dtype, built, outputs.shape[0]
+@pytest.fixture(scope="module", params=[(e, d) for e in EMITTERS for d in (torch.float32, torch.float64)],
+                ids=lambda p: f"{p[0]}-{p[1]}".replace("torch.", ""))
+def kernel(request, tmp_path_factory):
+    name, dtype = request.param
+    emitter, options = EMITTERS[name]
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path_factory.mktemp("cache")))
+        patch.setenv("TRITON_INTERPRET", "1")  # the Triton kernel on CPU tensors
+        if name == "cpp-generic":
+            patch.setattr(emit_cpp, "vector_bytes", lambda: 16)
+        probe = torch.ones(3, 2, dtype=dtype)
+        graph = rows.row_graph(lambda xs: (_ops(xs[0], xs[1], xs[2]),), [probe])
+        outputs = _ops(probe[0], probe[1], probe[2])
+        layout_in = Layout.of(probe)
+        layout_out = Layout.of(outputs)
+        # a second input layout: the rows of a batch-first (B, 3) tensor, as the step kernel reads the public state
+        layout_strided = Layout.of(lanes.to_lanes(torch.ones(2, 3, dtype=dtype)))
+        built = {}
+        for layout_name, layout in (("contiguous", layout_in), ("strided", layout_strided)):
+            program = Program(dtype, [layout], [layout_out])
+            program.store(0, program.add(graph, [lambda r: ("input", 0, r)])[0])
+            code = emitter.source(program)
+            key = hashlib.sha256(repr((code, emitter.settings())).encode()).hexdigest()[:32]
+            path = emitter.build(code, f"the op test ({layout_name}, {dtype})", key)
+            built[layout_name] = emitter.Kernel(path, dtype, **options)
+    return name, dtype, built, outputs.shape[0]
 
 
 @pytest.mark.parametrize("batch", [1, 5, 37])
-def test_every_op_matches_torch(kernel, batch):
-    dtype, built, count = kernel
+def test_every_op_matches_torch(kernel, batch, monkeypatch):
+    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    name, dtype, built, count = kernel
     g = torch.Generator().manual_seed(batch)
     values = torch.randn(3, batch, generator=g, dtype=torch.float64) * 10.0 ** torch.randint(-3, 4, (3, batch),
                                                                                              generator=g)
@@ -68,8 +83,8 @@ def test_every_op_matches_torch(kernel, batch):
         values[1, (i + 1) % batch] = v
     values[2] = torch.rand(batch, generator=g, dtype=dtype) * 1.98 - 0.99
     expected = _ops(values[0], values[1], values[2])
-    for name, k in built.items():
-        inputs = values.contiguous() if name == "contiguous" else values.t().contiguous()
+    for layout_name, k in built.items():
+        inputs = values.contiguous() if layout_name == "contiguous" else values.t().contiguous()
         out = torch.empty(count, batch, dtype=dtype)
         k(batch, [inputs], [out], 1)
         library = [7, 8] + list(range(16, 25))  # roots and transcendental functions
@@ -79,11 +94,17 @@ def test_every_op_matches_torch(kernel, batch):
         torch.testing.assert_close(out[library], expected[library], rtol=ulps, atol=ulps, equal_nan=True)
 
 
+def test_both_emitters_cover_the_contract():
+    """Each emitter has a translation for every op of the row-op contract, and nothing beyond it."""
+    assert set(emit_cpp.CPP) == set(program_module.OPS)
+    assert set(emit_triton.TRITON) == set(program_module.OPS)
+
+
 def test_unsupported_op_is_named():
     """An op the generator has no translation for is refused by name (the stepper then falls back)."""
     probe = torch.ones(2, 2)
     graph = rows.row_graph(lambda x: (torch.erf(x),), [probe])
-    program = row_code.Program(torch.float32, [row_code.Tensor.of(probe)], [row_code.Tensor.of(probe)])
+    program = Program(torch.float32, [Layout.of(probe)], [Layout.of(probe)])
     with pytest.raises(rows.Unsupported, match="erf"):
         program.add(graph, [lambda r: ("input", 0, r)])
 
@@ -95,8 +116,10 @@ def test_step_kernel_refuses_a_state_it_would_misread():
     state = torchsim.init(sys, sys.q0.expand(3, -1).clone(), torch.zeros(3, sys.nv))
     stepper(state, torch.zeros(3, sys.nu))
     assert stepper.strategy == "kernel"
-    with pytest.raises(ValueError, match=r"state.x_pos must be a CPU torch.float32 tensor of shape \(B, 2, 3\)"):
+    with pytest.raises(ValueError, match=r"state.x_pos must be a torch.float32 tensor of shape \(3, 2, 3\) on cpu"):
         stepper(state._replace(x_pos=state.x_pos.double()), torch.zeros(3, sys.nu))
+    with pytest.raises(ValueError, match=r"state.q must be .* of shape \(3, 2\) .* got torch.float32 \(1, 2\)"):
+        stepper(state._replace(q=state.q[:1]), torch.zeros(3, sys.nu))  # a batch the code would read past
 
 
 def test_step_kernel_follows_a_system_edited_in_place():
@@ -142,10 +165,10 @@ def test_step_kernel_with_per_env_parameters_matches_the_reference():
 
 def test_step_kernel_shares_a_batch_between_threads_exactly():
     """A batch of at least 4 vector blocks per thread runs in shares on torch's OpenMP threads
-    (``row_code.Kernel``): envs never interact, so two threads' steps equal one thread's bit for bit, across the
+    (``emit_cpp.Kernel``): envs never interact, so two threads' steps equal one thread's bit for bit, across the
     shares' seam and a partial last block (8 blocks and 5 envs: shares of 4 and 5 blocks)."""
     sys = torchsim.load_mjcf(str(torchsim.envs.asset_path("inverted_pendulum.xml")))
-    batch = 8 * row_code.vector_bytes() // 4 + 5
+    batch = 8 * emit_cpp.vector_bytes() // 4 + 5
     generator = torch.Generator().manual_seed(0)
     state = torchsim.init(sys, sys.q0 + 0.3 * torch.randn(batch, sys.nq, generator=generator),
                           torch.randn(batch, sys.nv, generator=generator))

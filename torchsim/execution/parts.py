@@ -13,7 +13,7 @@ batch; joined, the parts give the whole-batch result exactly. Two things make th
 
 A ``torchsim.Stepper`` whose strategy compiles the step as loop nests (``loop``, ``calls``) steps CPU batches this
 way (its ``part_size`` and ``threads``); eager steps stay whole and on one thread (their Python dispatch would
-hold the GIL most of the time, and eager ops gain from large batches), and so do row graphs (one loop over the
+hold the GIL most of the time, and eager ops gain from large batches), and so do step kernels (one loop over the
 whole batch, spread over every intra-op thread).
 """
 

@@ -1,0 +1,38 @@
+#!/usr/bin/env bash
+# Every check that needs a GPU, in one run of under 8 minutes (a device session has ~15), logs in $LOGS:
+#   1. the GPU step kernel against the CPU reference on the CI models, float64 and float32 (check_cuda.py);
+#   2. the physics bench: Ant and Humanoid at 4096/16384/65536 envs, float32, MuJoCo C on the machine's cores beside
+#      it, and the kernel's launch shapes at the largest batch (bench_gpu_step.py);
+#   3. the render bench: 64x64 depth of the Ant scene (bench_render.py);
+#   4. a timed training run: the main job with device=cuda for 90 s.
+# The GPU machine has no network: first run scripts/gpu_wheels.sh here, then on the device
+#   bash scripts/gpu_check.sh        (carry .whl; LOGS defaults to $OUT, else docs/logs/gpu_<commit>)
+set -uo pipefail
+cd "$(dirname "$0")/.."
+commit=$(git rev-parse --short HEAD 2>/dev/null || echo unknown)
+LOGS=${LOGS:-${OUT:-docs/logs/gpu_$commit}}
+mkdir -p "$LOGS"
+export PYTHONUNBUFFERED=1 TORCHSIM_CACHE_DIR=${TORCHSIM_CACHE_DIR:-/tmp/torchsim_cache}
+if [ -d .whl ]; then  # the project's own dependencies, and the project, without a network
+  python3 -m pip install -q --no-index --no-deps --no-build-isolation .whl/* >"$LOGS/install.log" 2>&1 \
+    && python3 -m pip install -q --no-index --no-deps --no-build-isolation -e . >>"$LOGS/install.log" 2>&1 \
+    || { echo "install failed:"; tail -20 "$LOGS/install.log"; exit 1; }
+fi
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader | tee "$LOGS/gpu.txt"
+status=0
+run() {  # run NAME SECONDS COMMAND...: its output in $LOGS/NAME.log, its time and exit code on the console
+  local name=$1 limit=$2; shift 2
+  local start=$SECONDS
+  timeout "$limit" "$@" >"$LOGS/$name.log" 2>&1
+  local rc=$?
+  echo "$name: exit $rc after $((SECONDS - start)) s (limit $limit s)"
+  tail -n 25 "$LOGS/$name.log"
+  [ $rc -eq 0 ] || status=1
+}
+run check_kernel 120 python3 scripts/check_cuda.py --strategy kernel --methods spring --skip-envs --skip-render \
+  --models ant.xml humanoid.xml hopper.xml fetch.xml ur5e.urdf --steps 10 --out "$LOGS/check_kernel.md"
+run bench_gpu_step 180 python3 scripts/bench_gpu_step.py --models ant humanoid --sweep --out "$LOGS/bench_gpu_step.md"
+run bench_render 45 python3 scripts/bench_render.py --device cuda --compile --no-mujoco --size 64 \
+  --batches 4096 16384 65536
+run train_cuda 120 python3 -m torchsim.train device=cuda budget.minutes=1.5 video.enabled=false
+exit $status
