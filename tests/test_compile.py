@@ -88,11 +88,12 @@ def test_kernel_and_fallback_steppers_match_eager_side_by_side(tmp_path, monkeyp
     whole step one generated C++ function, built once). The other is asked for the default too, but the row
     interpreter is made to lack ``torch.cat``, so the kernel cannot express the step: it falls back, with one
     warning naming the op, to ``loop`` (the step one compiled graph, its substeps a loop; the batch cut into 4 parts
-    of 2 that two threads step at once, joined). Each gives the eager step's numbers."""
+    of 2 that two threads step at once, joined; its graph run by ``aot_eager``: inductor's code for it is checked
+    above). Each gives the eager step's numbers."""
     monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))  # a kernel stored by an earlier run would load
     torch.compiler.reset()
     sys, state, ctrl = _setup(method)
-    looped = torchsim.Stepper(sys, part_size=2, threads=2)
+    looped = torchsim.Stepper(sys, part_size=2, threads=2, backend="aot_eager")
     with monkeypatch.context() as patch:
         patch.delattr(rows._RowInterpreter, "_op_cat_default")
         with pytest.warns(UserWarning) as warned:

@@ -104,8 +104,8 @@ def test_compiled_env_step_matches_eager_with_per_env_parameters():
 
 def test_torch_compile_of_step_warns_it_is_not_the_fast_path():
     """Dynamo tracing the reference step warns once, naming the Stepper (traced with the eager backend: what the
-    warning is about is the graph dynamo sees, not inductor's code for it)."""
-    sys_ = torchsim.load_mjcf(str(torchsim.envs.asset_path("inverted_pendulum.xml")))
+    warning is about is the graph dynamo sees, not inductor's code for it; 2 substeps, which dynamo unrolls)."""
+    sys_ = torchsim.load_mjcf(str(torchsim.envs.asset_path("inverted_pendulum.xml")), substeps=2)
     state = torchsim.init(sys_, sys_.q0.expand(2, -1).clone(), torch.zeros(2, sys_.nv))
     with pytest.warns(UserWarning, match="torchsim.Stepper"):
         torch.compile(torchsim.step, fullgraph=True, backend="eager")(sys_, state, torch.zeros(2, sys_.nu))

@@ -42,6 +42,11 @@ def split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
 EMITTERS = {"cpu": emit_cpp, "cuda": emit_triton}
 
 
+#: The Programs this process traced, by what they depend on (the last few): a second code generator for the same
+#: step (the CPU's and a GPU's kernel in one process) emits from the Program instead of tracing it again.
+_PROGRAMS: dict[str, Program] = {}
+
+
 class StepKernel:
     """``torchsim.step(sys, state, ctrl)`` as one generated kernel for Systems like ``sys`` on its device: its shared
     parameters' values are built in, its per-env parameters (``set_physics``) are inputs, so a System with other
@@ -54,18 +59,22 @@ class StepKernel:
         emitter = emitter or EMITTERS.get(sys.device.type)
         if emitter is None:
             raise rows.Unsupported(f"no step kernel is generated for {sys.device.type} devices")
-        # traced at two envs (env 0's per-env parameters, the model's rest state): only shapes matter, and which
-        # terms are per env
+        self.substeps, self.device = sys.substeps, sys.device
+        # traced on the CPU (the row interpreter reads index tensors as NumPy arrays; the Program it makes does not
+        # depend on the device), at two envs (env 0's per-env parameters, the model's rest state): only shapes
+        # matter, and which terms are per env
+        sys = sys.to(device="cpu")
         self.where = sys.per_env_parameters()
         per_env = [sys.parameter(w) for w in self.where]
         probe_sys = sys.with_parameters(self.where, [x[:1].expand(2, *x.shape[1:]).contiguous() for x in per_env])
         q0 = sys.q0.expand(2, -1).contiguous()
-        state = pipeline.init(probe_sys, q0, torch.zeros(2, sys.nv, dtype=sys.dtype, device=sys.device))
-        ctrl = torch.zeros(2, sys.nu, dtype=sys.dtype, device=sys.device)
+        state = pipeline.init(probe_sys, q0, torch.zeros(2, sys.nv, dtype=sys.dtype))
+        ctrl = torch.zeros(2, sys.nu, dtype=sys.dtype)
         params = [lanes.to_lanes(probe_sys.parameter(w)) for w in self.where]
         inputs = [*pipeline.to_lanes_state(state), lanes.to_lanes(ctrl), *params]
         # the key holds the shared parameters' values and the per-env ones' shapes (their values are inputs)
         shapes_only = sys.with_parameters(self.where, [x.new_zeros(x.shape[1:]) for x in per_env])
+        step_key = cache.content_key(shapes_only, inputs, {}, self.where)  # what the Program depends on
         key = cache.content_key(shapes_only, inputs, {"step kernel": emitter.settings()}, self.where)
         path = emitter.path(key)
         what = f"the {sys.method} step ({sys.num_bodies} bodies, {sys.dtype}" + (
@@ -73,13 +82,17 @@ class StepKernel:
         if path.is_file():
             progress.log.info("loaded %s from %s", what, path)
         else:
-            layouts = [Layout.of(x) for x in inputs]
-            with progress.announce(f"{what}: tracing its row graphs"):
-                graphs = _graphs(probe_sys, self.where, state, ctrl, params)
-            program = _wire(Program(sys.dtype, layouts, layouts[:7]), *graphs, len(params))
+            program = _PROGRAMS.get(step_key)
+            if program is None:
+                layouts = [Layout.of(x) for x in inputs]
+                with progress.announce(f"{what}: tracing its row graphs"):
+                    graphs = _graphs(probe_sys, self.where, state, ctrl, params)
+                program = _wire(Program(sys.dtype, layouts, layouts[:7]), *graphs, len(params))
+                _PROGRAMS[step_key] = program
+                while len(_PROGRAMS) > 4:
+                    del _PROGRAMS[next(iter(_PROGRAMS))]
             path = emitter.build(emitter.source(program), what, key)
         self.kernel = emitter.Kernel(path, sys.dtype, **options)
-        self.substeps, self.device = sys.substeps, sys.device
         self.fields = [(x.shape[1:], x.dtype) for x in (*state, ctrl)]
 
     def __call__(self, sys: System, state: State, ctrl: torch.Tensor) -> State:
