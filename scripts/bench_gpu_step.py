@@ -106,18 +106,20 @@ def main():
              "ratio |", "|---|---:|---|---:|---:|---:|---:|"]
     for name in args.models:
         sys_, m = load(name, dtype, device)
-        shapes = [(args.block, args.num_warps)]
+        cuda = torch.device(device).type == "cuda"  # launch shapes are the Triton kernel's; the CPU's has none
+        shapes = [(args.block, args.num_warps) if cuda else (None, None)]
         for batch in args.batches:
             state, ctrl, q, qd = start(sys_, batch)
             mujoco_rate = float("nan")
             if not args.no_mujoco:
                 controls = np.repeat(ctrl.double().cpu().numpy()[:, None], args.mujoco_steps, 1)
                 mujoco_rate = mujoco_rollout_rate(m, mujoco_start_states(m, q, qd), controls, 3, threads)
-            sweep = SWEEP if args.sweep and batch == max(args.batches) else shapes
+            sweep = SWEEP if cuda and args.sweep and batch == max(args.batches) else shapes
             for block, warps in sweep:
-                stepper = torchsim.Stepper(sys_, args.strategy, kernel_options=dict(block=block, num_warps=warps))
+                options = dict(block=block, num_warps=warps) if cuda else None
+                stepper = torchsim.Stepper(sys_, args.strategy, kernel_options=options)
                 first, rate = bench_stepper(stepper, state, ctrl, args.steps, args.repeats, device)
-                lines.append(f"| {name} | {batch} | {block} x {warps} | {first:.1f} | {rate:,.0f} | "
+                lines.append(f"| {name} | {batch} | {f'{block} x {warps}' if cuda else '-'} | {first:.1f} | {rate:,.0f} | "
                              f"{mujoco_rate:,.0f} | {rate / mujoco_rate:.1f} |")
                 print(lines[-1], flush=True)
     emit_table("\n".join(lines), args.out)
