@@ -42,7 +42,7 @@ def split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
 EMITTERS = {"cpu": emit_cpp, "cuda": emit_triton}
 
 
-#: The Programs this process traced, by what they depend on (the last few): a second code generator for the same
+#: The Programs this process traced, by what they depend on (the last 32): a second code generator for the same
 #: step (the CPU's and a GPU's kernel in one process) emits from the Program instead of tracing it again.
 _PROGRAMS: dict[str, Program] = {}
 
@@ -89,7 +89,7 @@ class StepKernel:
                     graphs = _graphs(probe_sys, self.where, state, ctrl, params)
                 program = _wire(Program(sys.dtype, layouts, layouts[:7]), *graphs, len(params))
                 _PROGRAMS[step_key] = program
-                while len(_PROGRAMS) > 4:
+                while len(_PROGRAMS) > 32:  # a few MB each (the Humanoid's ~20k statements)
                     del _PROGRAMS[next(iter(_PROGRAMS))]
             path = emitter.build(emitter.source(program), what, key)
         self.kernel = emitter.Kernel(path, sys.dtype, **options)
