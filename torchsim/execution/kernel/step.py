@@ -15,6 +15,8 @@ inductor's compile of the substep alone takes minutes (``docs/benchmarks.md``). 
 (``cache``): a later process with the same model, dtype, torch and torchsim source loads it in milliseconds.
 """
 
+import hashlib
+
 import torch
 import torch.utils._pytree as pytree
 
@@ -75,7 +77,7 @@ class StepKernel:
         # the key holds the shared parameters' values and the per-env ones' shapes (their values are inputs)
         shapes_only = sys.with_parameters(self.where, [x.new_zeros(x.shape[1:]) for x in per_env])
         step_key = cache.content_key(shapes_only, inputs, {}, self.where)  # what the Program depends on
-        key = cache.content_key(shapes_only, inputs, {"step kernel": emitter.settings()}, self.where)
+        key = hashlib.sha256(repr((step_key, emitter.settings())).encode()).hexdigest()[:32]  # and its code
         path = emitter.path(key)
         what = f"the {sys.method} step ({sys.num_bodies} bodies, {sys.dtype}" + (
             f", {len(self.where)} per-env parameters)" if self.where else ")")
