@@ -4,10 +4,10 @@
     python scripts/bench_gpu_step.py --models ant --batches 4096 --sweep --out /tmp/bench.md
 
 torchsim: ``torchsim.Stepper(sys, --strategy)`` on ``--device`` in ``--dtype`` (the ``kernel`` strategy on CUDA is
-the whole step as one Triton kernel, one launch a step), timed over ``--steps`` steps with the device synchronised
+the whole step as one CUDA kernel, one launch a step), timed over ``--steps`` steps with the device synchronised
 before and after, the median of ``--repeats``; its first call (tracing the row graphs, writing the kernel, Triton's
 compile) is reported apart. MuJoCo C: ``mujoco.rollout`` of the same model and batch on one thread per CPU core.
-``--sweep`` also times the kernel's launch shapes (envs per program, warps per program) at the largest batch. A
+``--sweep`` times each block size (envs per block of the CUDA kernel) at every batch. A
 step is one env step (``sys.timestep``, ``sys.substeps`` substeps), for both.
 """
 
@@ -27,7 +27,8 @@ import torchsim.envs
 from _timing import emit_table, mujoco_rollout_rate, mujoco_start_states
 from torchsim.io_urdf import urdf_to_mjcf
 
-SWEEP = [(32, 1), (64, 2), (128, 4), (256, 4), (64, 1)]
+#: threads (envs) per block of the CUDA kernel: few at small batches spread the envs over more of the GPU's SMs
+BLOCKS = [32, 64, 128, 256]
 
 
 def parse_args():
@@ -37,11 +38,10 @@ def parse_args():
     p.add_argument("--batches", nargs="+", type=int, default=[4096, 16384, 65536])
     p.add_argument("--dtype", default="float32", choices=["float32", "float64"])
     p.add_argument("--strategy", default="kernel")
-    p.add_argument("--block", type=int, default=128, help="envs per Triton program")
-    p.add_argument("--num-warps", type=int, default=4)
-    p.add_argument("--sweep", action="store_true", help="also time other (block, num_warps) at the largest batch")
-    p.add_argument("--steps", type=int, default=50)
-    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--block", type=int, default=128, help="envs (threads) per block of the CUDA kernel")
+    p.add_argument("--sweep", action="store_true", help=f"time every block size of {BLOCKS} at every batch")
+    p.add_argument("--steps", type=int, default=20)
+    p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--mujoco-steps", type=int, default=20)
     p.add_argument("--no-mujoco", action="store_true")
     p.add_argument("--out", help="also write the table (markdown) here")
@@ -102,24 +102,23 @@ def main():
     header = (f"{gpu}; torch {torch.__version__}; {args.dtype}; strategy {args.strategy}; commit {commit or '?'}; "
               f"MuJoCo {mujoco.__version__} on {threads} CPU threads; {time.strftime('%Y-%m-%d')}")
     print(header, flush=True)
-    lines = [header, "", "| model | batch | block x warps | first call s | torchsim steps/s | MuJoCo C steps/s | "
+    lines = [header, "", "| model | batch | block | first call s | torchsim steps/s | MuJoCo C steps/s | "
              "ratio |", "|---|---:|---|---:|---:|---:|---:|"]
     for name in args.models:
         sys_, m = load(name, dtype, device)
-        cuda = torch.device(device).type == "cuda"  # launch shapes are the Triton kernel's; the CPU's has none
-        shapes = [(args.block, args.num_warps) if cuda else (None, None)]
+        cuda = torch.device(device).type == "cuda"  # launch shapes are the CUDA kernel's; the CPU's has none
         for batch in args.batches:
             state, ctrl, q, qd = start(sys_, batch)
             mujoco_rate = float("nan")
             if not args.no_mujoco:
                 controls = np.repeat(ctrl.double().cpu().numpy()[:, None], args.mujoco_steps, 1)
                 mujoco_rate = mujoco_rollout_rate(m, mujoco_start_states(m, q, qd), controls, 3, threads)
-            sweep = SWEEP if cuda and args.sweep and batch == max(args.batches) else shapes
-            for block, warps in sweep:
-                options = dict(block=block, num_warps=warps) if cuda else None
-                stepper = torchsim.Stepper(sys_, args.strategy, kernel_options=options)
+            for block in (BLOCKS if args.sweep else [args.block]) if cuda else [None]:
+                stepper = torchsim.Stepper(sys_, args.strategy, kernel_options=dict(block=block) if cuda else None)
                 first, rate = bench_stepper(stepper, state, ctrl, args.steps, args.repeats, device)
-                lines.append(f"| {name} | {batch} | {f'{block} x {warps}' if cuda else '-'} | {first:.1f} | {rate:,.0f} | "
+                if stepper.strategy != args.strategy:
+                    raise RuntimeError(f"the {args.strategy} strategy fell back to {stepper.strategy}")
+                lines.append(f"| {name} | {batch} | {block or '-'} | {first:.1f} | {rate:,.0f} | "
                              f"{mujoco_rate:,.0f} | {rate / mujoco_rate:.1f} |")
                 print(lines[-1], flush=True)
     emit_table("\n".join(lines), args.out)

@@ -12,7 +12,7 @@
    chaotic, so the horizon is short. The same run in float32 on the GPU is compared with float32 on the CPU, both
    against the CPU in float64: the GPU must not be less accurate than the CPU at the precision the envs train in.
    ``--strategy`` runs the GPU's rollouts through ``torchsim.Stepper(sys, strategy)`` instead (``kernel``: the
-   whole step as one generated Triton kernel), against the same eager CPU reference.
+   whole step as one generated CUDA kernel), against the same eager CPU reference.
 2. **Envs.** Every env of ``torchsim.envs`` on the GPU: TorchRL's ``check_env_specs``, every output tensor on the
    GPU, a random rollout with no diverged env.
 3. **Cameras.** ``torchsim.render`` of ``--render-batch`` random states of the ant, reacher and grasp scenes, float32,
@@ -79,6 +79,8 @@ def rollout(xml: str, method: str, device: str, dtype: torch.dtype, q, qd, ctrl,
         state = torchsim.init(sys_, as_tensor(q), as_tensor(qd))
         for c in as_tensor(ctrl):
             state = step(state, c)
+    if strategy and step.strategy != strategy:  # a fallback would check another strategy than the one asked for
+        raise RuntimeError(f"the {strategy} strategy fell back to {step.strategy}")
     return state
 
 

@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Every check that needs a GPU, in one run of under 8 minutes (a device session has ~15), logs in $LOGS:
-#   1. the GPU step kernel against the CPU reference on the CI models, float64 and float32 (check_cuda.py);
-#   2. the physics bench: Ant and Humanoid at 4096/16384/65536 envs, float32, MuJoCo C on the machine's cores beside
-#      it, and the kernel's launch shapes at the largest batch (bench_gpu_step.py);
-#   3. the render bench: 64x64 depth of the Ant scene (bench_render.py);
-#   4. a timed training run: the main job with device=cuda for 90 s.
+#   1. the GPU step kernel (CUDA C, compiled by NVRTC) against the CPU reference, Ant and Humanoid, float64 and
+#      float32 (check_cuda.py);
+#   2. the physics bench: Ant and Humanoid at 4096 to 262144 envs, float32, each block size, MuJoCo C on the
+#      machine's cores beside it (bench_gpu_step.py);
+#   3. a timed training run: the main job with device=cuda for 90 s;
+#   4. the render bench: 64x64 depth of the Ant scene, eager (bench_render.py).
 # The GPU machine has no network: first run scripts/gpu_wheels.sh here, then on the device
 #   bash scripts/gpu_check.sh        (carry .whl; LOGS defaults to $OUT, else docs/logs/gpu_<commit>)
 set -uo pipefail
@@ -29,10 +30,10 @@ run() {  # run NAME SECONDS COMMAND...: its output in $LOGS/NAME.log, its time a
   tail -n 25 "$LOGS/$name.log"
   [ $rc -eq 0 ] || status=1
 }
-run check_kernel 120 python3 scripts/check_cuda.py --strategy kernel --methods spring --skip-envs --skip-render \
-  --models ant.xml humanoid.xml hopper.xml fetch.xml ur5e.urdf --steps 10 --out "$LOGS/check_kernel.md"
-run bench_gpu_step 180 python3 scripts/bench_gpu_step.py --models ant humanoid --sweep --out "$LOGS/bench_gpu_step.md"
-run bench_render 45 python3 scripts/bench_render.py --device cuda --compile --no-mujoco --size 64 \
-  --batches 4096 16384 65536
-run train_cuda 120 python3 -m torchsim.train device=cuda budget.minutes=1.5 video.enabled=false
+run check_kernel 180 python3 scripts/check_cuda.py --strategy kernel --methods spring --skip-envs --skip-render \
+  --models ant.xml humanoid.xml --steps 10 --out "$LOGS/check_kernel.md"
+run bench_gpu_step 240 python3 scripts/bench_gpu_step.py --models ant humanoid --batches 4096 16384 65536 262144 \
+  --sweep --mujoco-steps 5 --out "$LOGS/bench_gpu_step.md"
+run train_cuda 130 python3 -m torchsim.train device=cuda budget.minutes=1.5 video.enabled=false
+run bench_render 40 python3 scripts/bench_render.py --device cuda --no-mujoco --size 64 --batches 4096 16384
 exit $status

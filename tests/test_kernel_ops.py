@@ -1,14 +1,14 @@
 """The generated kernels (``torchsim.execution.kernel``): every op of the row-op contract, emitted as C++ (the CPU
-kernel) and as Triton (the GPU kernel, run here by Triton's interpreter on CPU tensors), gives torch's own result
-on the same rows.
+kernel) and as CUDA C (the GPU kernel, compiled here for the host CPU: the same source, a loop over envs in place
+of a grid), gives torch's own result on the same rows.
 
 One row graph holds every op (``rows.row_graph`` of a lanes function), so one build per emitter and dtype serves the
 file (a few seconds). C++ arithmetic and selections must match eager torch bit for bit (no fast-math, no FMA
 contraction). Library functions may differ by an ulp or two (the bound: 4 ulps of the dtype): the generated square
 root is IEEE's, correctly rounded, where torch's CPU kernel (MKL's) is within an ulp (it differs from the correctly
 rounded root in ~17% of random float32 values), and the transcendental functions call SLEEF's u10 (1-ulp) vector
-functions in C++ (the C library's, lane by lane, where a CPU lacks AVX2), NumPy's in the Triton interpreter (libdevice's on a GPU). The rows hold NaN, +-inf, +-0 and
-values across many magnitudes, so NaN handling (``minimum``/``maximum`` propagate it, as torch's do) is checked too;
+functions in C++ (the C library's, lane by lane, where a CPU lacks AVX2), the C library's in the CUDA kernel's host
+build (CUDA's math library on a GPU). The rows hold NaN, +-inf, +-0 and values across many magnitudes, so NaN handling (``minimum``/``maximum`` propagate it, as torch's do) is checked too;
 batches of 1, 5 and 37 envs cover whole and partial vector blocks, and a strided (batch-first) input.
 """
 
@@ -20,12 +20,12 @@ import torch
 import torchsim
 import torchsim.envs
 from torchsim import lanes
-from torchsim.execution.kernel import emit_cpp, emit_triton, program as program_module, rows
+from torchsim.execution.kernel import emit_cpp, emit_cuda, program as program_module, rows
 from torchsim.execution.kernel.program import Layout, Program
 
 SPECIAL = [float("nan"), float("inf"), -float("inf"), 0.0, -0.0, 1e-30, -3.5, 2.0, 1e6]
 #: ``cpp-generic``: the C++ a CPU without AVX2 gets (16-byte generic vectors, the C library's functions lane by lane)
-EMITTERS = {"cpp": (emit_cpp, {}), "cpp-generic": (emit_cpp, {}), "triton": (emit_triton, {"block": 8})}
+EMITTERS = {"cpp": (emit_cpp, {}), "cpp-generic": (emit_cpp, {}), "cuda-host": (emit_cuda, {})}
 
 
 def _ops(x: torch.Tensor, y: torch.Tensor, p: torch.Tensor):
@@ -49,7 +49,6 @@ def kernel(request, tmp_path_factory):
     emitter, options = EMITTERS[name]
     with pytest.MonkeyPatch.context() as patch:
         patch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path_factory.mktemp("cache")))
-        patch.setenv("TRITON_INTERPRET", "1")  # the Triton kernel on CPU tensors
         if name == "cpp-generic":
             patch.setattr(emit_cpp, "vector_bytes", lambda: 16)
         probe = torch.ones(3, 2, dtype=dtype)
@@ -66,13 +65,12 @@ def kernel(request, tmp_path_factory):
             code = emitter.source(program)
             key = hashlib.sha256(repr((code, emitter.settings())).encode()).hexdigest()[:32]
             path = emitter.build(code, f"the op test ({layout_name}, {dtype})", key)
-            built[layout_name] = emitter.Kernel(path, dtype, **options)
+            built[layout_name] = emitter.Kernel(path, dtype, torch.device("cpu"), **options)
     return name, dtype, built, outputs.shape[0]
 
 
 @pytest.mark.parametrize("batch", [1, 5, 37])
-def test_every_op_matches_torch(kernel, batch, monkeypatch):
-    monkeypatch.setenv("TRITON_INTERPRET", "1")
+def test_every_op_matches_torch(kernel, batch):
     name, dtype, built, count = kernel
     g = torch.Generator().manual_seed(batch)
     values = torch.randn(3, batch, generator=g, dtype=torch.float64) * 10.0 ** torch.randint(-3, 4, (3, batch),
@@ -97,7 +95,7 @@ def test_every_op_matches_torch(kernel, batch, monkeypatch):
 def test_both_emitters_cover_the_contract():
     """Each emitter has a translation for every op of the row-op contract, and nothing beyond it."""
     assert set(emit_cpp.CPP) == set(program_module.OPS)
-    assert set(emit_triton.TRITON) == set(program_module.OPS)
+    assert set(emit_cuda.CUDA) == set(program_module.OPS)
 
 
 def test_unsupported_op_is_named():

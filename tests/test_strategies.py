@@ -1,7 +1,8 @@
 """Every strategy a ``torchsim.Stepper`` runs agrees with the reference step (``torchsim.step``) on the models the
 envs ship: spring through ``kernel`` (the generated C++) and ``loop``, xpbd through ``calls``; 20 steps, at batch 1
 and at a batch of two cut into two parts of one env, which two threads step at once. And the GPU kernel (the same
-step Program emitted as Triton) on every shipped model, run by Triton's interpreter on CPU tensors.
+step Program emitted as CUDA C) on every shipped model, its source compiled for the host CPU (a loop over envs in
+place of the grid).
 
 In float64, against the reference's own rounding: a strategy evaluates the step with other formulas for a few
 primitives (the per-component forms that ``torch.compile`` and row graphs trace, ``torchsim.spatial``) and the row
@@ -18,7 +19,7 @@ graph of the whole step with its ``while_loop``; the separate substep and step e
 executed op by op (inductor's code generation for them takes minutes per model on two cores; it is checked in
 float32 on a small model in ``test_compile.py``). CI runs five models that between them hold every joint kind,
 contact shape and loader (the Ant: free root and hinges, capsule and sphere contacts; the Humanoid: 2- and 3-hinge
-joints; the Hopper: slides; Fetch: boxes; the UR5e: a URDF arm without contacts), the Triton kernel all twelve.
+joints; the Hopper: slides; Fetch: boxes; the UR5e: a URDF arm without contacts), the CUDA kernel all twelve.
 ``TORCHSIM_TEST_ALL_MODELS=1`` runs every shipped model and strategy, and ``TORCHSIM_TEST_BACKEND=inductor`` the
 generated code of ``loop`` and ``calls`` (about five minutes of compiling per model).
 """
@@ -32,7 +33,7 @@ import torch
 
 import torchsim
 from torchsim import spatial
-from torchsim.execution.kernel import emit_triton
+from torchsim.execution.kernel import emit_cuda
 from torchsim.execution.kernel.step import StepKernel
 from models import SHIPPED, load_model, random_q
 
@@ -40,7 +41,7 @@ BACKEND = os.environ.get("TORCHSIM_TEST_BACKEND", "eager")
 ALL_MODELS = bool(os.environ.get("TORCHSIM_TEST_ALL_MODELS"))
 CI_MODELS = ("ant", "humanoid", "hopper", "fetch", "ur5e")
 CASES = [("spring", "kernel"), ("spring", "loop"), ("xpbd", "calls")]
-# a model's C++ kernel and its Triton kernel on one xdist worker (``--dist loadgroup``): the second emits from the
+# a model's C++ kernel and its CUDA kernel on one xdist worker (``--dist loadgroup``): the second emits from the
 # step Program the first traced (``execution.kernel.step``) instead of tracing it again
 PARAMS = [pytest.param(path, method, strategy, id=f"{path.stem}-{method}-{strategy}",
                        marks=[pytest.mark.xdist_group(path.stem)] if strategy == "kernel" else [])
@@ -121,20 +122,14 @@ def _check_against_reference(what: str, sys, step, start, ctrl, batch: int, min_
     assert worst <= max(1e-8, 10 * spread)
 
 
-#: Steps of the Triton kernel: the interpreter runs each row op as a NumPy call (~7 us), ~150k of them in an Ant step.
-TRITON_STEPS = 1
-
-
 @pytest.mark.parametrize("path", [pytest.param(p, marks=pytest.mark.xdist_group(p.stem)) for p in SHIPPED],
                          ids=lambda p: p.stem)
 def test_gpu_kernel_agrees_with_reference(path, monkeypatch, tmp_path):
-    """The step Program emitted as Triton, as a GPU runs it (one launch a step), run by Triton's interpreter on CPU
-    tensors: a float64 step (all its substeps) of 3 envs in one partial block of 4, against the reference by the
-    bound above."""
-    monkeypatch.setenv("TRITON_INTERPRET", "1")
+    """The step Program emitted as CUDA C, as a GPU runs it (one thread an env, one launch a step), its source
+    compiled for the host: float64 steps of 2 envs against the reference by the bound above."""
     monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))
-    sys, start, ctrl = _start(path, "spring", batch=3)
-    kernel = StepKernel(sys, emitter=emit_triton, block=4)
-    assert "@triton.jit" in next((tmp_path / "triton").glob("step_*.py")).read_text()
-    _check_against_reference(f"{path.stem} triton (interpreted)", sys, lambda state, ctrl: kernel(sys, state, ctrl),
-                             start, ctrl[:TRITON_STEPS], 3, min_move=1e-5)
+    sys, start, ctrl = _start(path, "spring", batch=2)
+    kernel = StepKernel(sys, emitter=emit_cuda)
+    assert "__global__ void step(" in next((tmp_path / "cuda").glob("*.cu")).read_text()
+    _check_against_reference(f"{path.stem} cuda (host build)", sys, lambda state, ctrl: kernel(sys, state, ctrl),
+                             start, ctrl, 2, min_move=1e-3)

@@ -261,7 +261,9 @@ class Kernel:
     34 us alone, and the Ant env's steps (with their transforms) ran at 0.71 of the engine's rate; on torch's pool,
     0.83 (``docs/benchmarks.md``, "The training loop")."""
 
-    def __init__(self, library_path: pathlib.Path, dtype: torch.dtype, threads: int = 1):
+    def __init__(self, library_path: pathlib.Path, dtype: torch.dtype, device: torch.device, threads: int = 1):
+        if torch.device(device).type != "cpu":
+            raise Unsupported(f"the C++ step kernel runs on the CPU, not {device}")
         self.lanes = vector_bytes() // dtype.itemsize
         library = ctypes.CDLL(str(library_path))
         self.run, self.run_shared = library.run, library.run_shared

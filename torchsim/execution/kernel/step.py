@@ -21,7 +21,7 @@ import torch
 import torch.utils._pytree as pytree
 
 from torchsim import lanes, pipeline, progress
-from torchsim.execution.kernel import cache, emit_cpp, emit_triton, rows
+from torchsim.execution.kernel import cache, emit_cpp, emit_cuda, rows
 from torchsim.execution.kernel.program import Layout, Program
 from torchsim.kinematics import Bodies, with_world
 from torchsim.methods import METHODS
@@ -41,7 +41,7 @@ def split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
 
 #: The code generator for each device type: its module has ``source(program)``, ``path(key)``,
 #: ``build(code, what, key)`` and ``Kernel(path, dtype, **options)``.
-EMITTERS = {"cpu": emit_cpp, "cuda": emit_triton}
+EMITTERS = {"cpu": emit_cpp, "cuda": emit_cuda}
 
 
 #: The Programs this process traced, by what they depend on (the last 32): a second code generator for the same
@@ -94,7 +94,7 @@ class StepKernel:
                 while len(_PROGRAMS) > 32:  # a few MB each (the Humanoid's ~20k statements)
                     del _PROGRAMS[next(iter(_PROGRAMS))]
             path = emitter.build(emitter.source(program), what, key)
-        self.kernel = emitter.Kernel(path, sys.dtype, **options)
+        self.kernel = emitter.Kernel(path, sys.dtype, self.device, **options)
         self.fields = [(x.shape[1:], x.dtype) for x in (*state, ctrl)]
 
     def __call__(self, sys: System, state: State, ctrl: torch.Tensor) -> State:
