@@ -5,7 +5,7 @@
 
 torchsim: ``torchsim.Stepper(sys, --strategy)`` on ``--device`` in ``--dtype`` (the ``kernel`` strategy on CUDA is
 the whole step as one CUDA kernel, one launch a step), timed over ``--steps`` steps with the device synchronised
-before and after, the median of ``--repeats``; its first call (tracing the row graphs, writing the kernel, Triton's
+before and after, the median of ``--repeats``; its first call (tracing the row graphs, writing the kernel, NVRTC's
 compile) is reported apart. MuJoCo C: ``mujoco.rollout`` of the same model and batch on one thread per CPU core.
 ``--sweep`` times each block size (envs per block of the CUDA kernel) at every batch. A
 step is one env step (``sys.timestep``, ``sys.substeps`` substeps), for both.

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Wheels the GPU machine lacks (it has no network; its image holds torch, triton, numpy, matplotlib, pyyaml, lxml,
+# Wheels the GPU machine lacks (it has no network; its image holds torch, numpy, matplotlib, pyyaml, lxml,
 # absl-py, etils), downloaded here into .whl/ for its Python (3.12, x86-64). Run once before scripts/gpu_check.sh;
 # the device call carries .whl (about 20 MB).
 set -euo pipefail

@@ -8,7 +8,7 @@
 
 - ``eager``: the reference step itself.
 - ``kernel``: the whole step as one generated kernel (``execution.kernel``): C++ on a CPU, built in seconds and
-  called once per step; Triton on a GPU, one launch per step. Per-env parameters are its inputs.
+  called once per step; CUDA C on a GPU (compiled by NVRTC), one launch per step. Per-env parameters are its inputs.
 - ``loop``: the whole step compiled by ``torch.compile`` as one graph, its substeps a ``while_loop``.
 - ``calls``: the substep and the step's end compiled separately, called from a Python loop.
 
@@ -61,10 +61,10 @@ class Stepper:
         backend: ``"inductor"`` (generated code: the speed), or another ``torch.compile`` backend (``"aot_eager"``)
             that runs ``loop``'s and ``calls``' graphs op by op without generating code, in seconds instead of
             minutes; for telling an engine error from a code generator's.
-        kernel_options: options for the GPU kernel (``block``, ``num_warps``: ``emit_triton.Kernel``).
+        kernel_options: options for the GPU kernel (``block``: envs per thread block, ``emit_cuda.Kernel``).
 
     Each strategy compiles on its first step (a kernel in seconds, kept on disk for later processes). If the step
-    cannot be expressed that way (an op outside the kernel's contract, no C++ compiler, no Triton), the stepper
+    cannot be expressed that way (an op outside the kernel's contract, no C++ compiler, no NVRTC), the stepper
     falls back to the next strategy with one warning instead of failing.
     """
 

@@ -16,6 +16,7 @@ on (``cache.content_key``), so a later process loads one without tracing its gra
 """
 
 import ctypes
+import functools
 import math
 import os
 import pathlib
@@ -212,8 +213,29 @@ def compiler_command() -> list[str]:
 
 
 def settings() -> list[str]:
-    """What the built code depends on besides its source (part of a kernel's cache key)."""
-    return compiler_command()
+    """What the built code depends on besides its source (part of a kernel's cache key): the compiler command, the
+    compiler's version and the CPU's instruction set (``-march=native`` code may not run on another CPU)."""
+    return [*compiler_command(), _compiler_version(), _cpu_flags()]
+
+
+@functools.lru_cache(maxsize=None)
+def _compiler_version() -> str:
+    try:
+        return subprocess.run([compiler_command()[0], "--version"], capture_output=True, text=True,
+                              timeout=60).stdout.split("\n")[0]
+    except (OSError, subprocess.TimeoutExpired):
+        return "no compiler"  # building then raises Unsupported
+
+
+@functools.lru_cache(maxsize=None)
+def _cpu_flags() -> str:
+    """The CPU's model and feature flags as the kernel reports them (Linux), else what Python knows of it."""
+    try:
+        lines = pathlib.Path("/proc/cpuinfo").read_text().splitlines()
+    except OSError:
+        return f"{platform.machine()} {platform.processor()}"
+    wanted = ("model name", "flags", "Features", "CPU implementer", "CPU part")
+    return "; ".join(sorted({line.strip() for line in lines if line.split(":")[0].strip() in wanted}))
 
 
 def path(key: str) -> pathlib.Path:
@@ -241,7 +263,8 @@ def build(code: str, what: str, key: str) -> pathlib.Path:
             raise Unsupported(f"the C++ compiler ran past {COMPILE_TIMEOUT_S} s") from None
     if done.returncode != 0:
         raise RuntimeError(f"compiling the generated row code {src} failed:\n{done.stderr[-4000:]}")
-    tmp.replace(path_)  # atomic: a concurrent process sees the whole library or none
+    cache.write(path_, tmp.read_bytes())  # with its digest, checked before every later load
+    tmp.unlink()
     src.unlink()
     return path_
 

@@ -5,13 +5,13 @@ chains several row graphs, wired by :class:`Binding`s, with one graph repeated i
 the small vocabulary :data:`ROW_OPS` names: statements ``name = op(args)``, each argument a statement's name, an
 input row or a Python number. Its shape is that of a step:
 
-    for each block of envs (a C++ vector of W envs; a Triton program's BLOCK envs):
+    for each block of envs (a C++ vector of W envs; one env a CUDA thread):
         load the block's rows of every input (any strides: batch-first state, lanes tensors)
         the statements before the loop
         repeat `iterations` times: the loop's statements; their results become the loop's carried rows
         the statements after the loop; store the outputs' rows
 
-``emit_cpp`` turns a Program into C++ for the CPU, ``emit_triton`` into a Triton kernel for the GPU: one
+``emit_cpp`` turns a Program into C++ for the CPU, ``emit_cuda`` into a CUDA kernel for the GPU: one
 description of the step, two code generators, each with a template for every op of :data:`ROW_OPS` (the
 contract: a test checks both cover it). An aten op outside it raises :class:`Unsupported` while the Program is
 built, before anything runs, and ``torchsim.Stepper`` then falls back to its next strategy with one warning.

@@ -1,5 +1,5 @@
 """A whole step as one generated kernel: ``torchsim.step`` for a spring System, its per-env parameters inputs of
-the kernel and its shared ones constants in it; C++ on a CPU (``emit_cpp``), Triton on a GPU (``emit_triton``).
+the kernel and its shared ones constants in it; C++ on a CPU (``emit_cpp``), CUDA C on a GPU (``emit_cuda``).
 
 The step is three row graphs (``rows``) of the reference pipeline's own phases, chained into one
 :class:`~torchsim.execution.kernel.program.Program` that reads the public state and controls and writes the next
@@ -40,7 +40,7 @@ def split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
 
 
 #: The code generator for each device type: its module has ``source(program)``, ``path(key)``,
-#: ``build(code, what, key)`` and ``Kernel(path, dtype, **options)``.
+#: ``build(code, what, key)`` and ``Kernel(path, dtype, device, **options)``.
 EMITTERS = {"cpu": emit_cpp, "cuda": emit_cuda}
 
 
@@ -53,8 +53,8 @@ class StepKernel:
     """``torchsim.step(sys, state, ctrl)`` as one generated kernel for Systems like ``sys`` on its device: its shared
     parameters' values are built in, its per-env parameters (``set_physics``) are inputs, so a System with other
     per-env values (``kernel(other_sys, state, ctrl)``) runs on the same code. ``emitter``: the code generator
-    (default: the device's, :data:`EMITTERS`; ``emit_triton`` on CPU tensors runs in Triton's interpreter);
-    ``options`` go to its ``Kernel`` (C++: ``threads`` that share each batch; Triton: ``block``, ``num_warps``).
+    (default: the device's, :data:`EMITTERS`; ``emit_cuda`` for a CPU System compiles the GPU code for the host,
+    to check it); ``options`` go to its ``Kernel`` (C++: ``threads`` that share each batch; CUDA: ``block``).
     Raises ``rows.Unsupported`` when the step cannot be expressed."""
 
     def __init__(self, sys: System, emitter=None, **options):
@@ -81,7 +81,7 @@ class StepKernel:
         path = emitter.path(key)
         what = f"the {sys.method} step ({sys.num_bodies} bodies, {sys.dtype}" + (
             f", {len(self.where)} per-env parameters)" if self.where else ")")
-        if path.is_file():
+        if cache.verified(path):
             progress.log.info("loaded %s from %s", what, path)
         else:
             program = _PROGRAMS.get(step_key)
