@@ -6,6 +6,8 @@ import json
 import logging
 import os
 import pathlib
+import pickle
+import secrets
 import subprocess
 import sys
 import time
@@ -164,6 +166,42 @@ def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False, 
     return Evaluation(ret, length, distance, trajectory, success, spl)
 
 
+def load_checkpoint(path, device="cpu") -> dict:
+    """The checkpoint ``path`` (a ``last.pt``) with its tensors on ``device``, read with ``weights_only``: tensors and
+    plain containers only, so a hostile file cannot run code as it loads (a checkpoint holds nothing else:
+    ``Run.save``)."""
+    try:
+        return torch.load(path, map_location=device, weights_only=True)
+    except pickle.UnpicklingError as err:
+        raise pickle.UnpicklingError(f"refused to load {path}: it holds objects other than tensors and plain "
+                                     f"containers, which a torchsim checkpoint never does ({err})") from err
+
+
+def save_checkpoint(ckpt: dict, path: pathlib.Path, previous: pathlib.Path) -> None:
+    """Write ``ckpt`` to ``path``, moving the file that was there to ``previous``. It is written under a unique temp
+    name beside ``path`` (two writers never share one), flushed and fsynced, and only then renamed, so neither
+    name ever holds part of a checkpoint, whatever stops the process; a failed write leaves no temp file behind."""
+    # not mkstemp: its files are private to the user (0600), a checkpoint gets the permissions the umask gives
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
+    f = open(tmp, "xb")  # x: fails rather than share a name (the cleanup below is then not ours to do)
+    try:
+        with f:
+            torch.save(ckpt, f)
+            f.flush()
+            os.fsync(f.fileno())
+        if path.exists():  # a process stopped between these renames leaves previous (the last good state)
+            os.replace(path, previous)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    directory = os.open(path.parent, os.O_RDONLY)  # the renames reach the disk too, not only the data
+    try:
+        os.fsync(directory)
+    finally:
+        os.close(directory)
+
+
 def load_policy(ckpt: dict, env: TransformedEnv, device) -> ProbabilisticActor:
     """The actor of checkpoint ``ckpt`` (a loaded ``last.pt``), with ``env``'s normaliser set to the checkpoint's
     statistics and frozen."""
@@ -219,7 +257,8 @@ def render_gif(env_name: str, qpos: np.ndarray, dt: float, path: pathlib.Path, r
 class Run:
     """Bookkeeping of one training run in ``out_dir``: env-step budget and wall clock, progress lines, TorchRL logger,
     periodic deterministic evaluation, checkpoints (``checkpoints/last.pt``, written only after a finite update, so
-    it is always the last good state), resume, and the final plot and video.
+    it is always the last good state, and ``checkpoints/previous.pt``, the one before), resume, and the final plot
+    and video.
 
     ``state`` maps names to everything with a ``state_dict`` that a resumed run needs (networks, loss module with
     its target networks and temperature, optimisers, observation normaliser). With several ``ranks`` only rank 0
@@ -238,6 +277,7 @@ class Run:
         self.recent = collections.deque(maxlen=cfg.recent_episodes)
         self.recent_success = collections.deque(maxlen=cfg.recent_episodes)  # navigation: STOPs within reach
         self.next_eval = 0 if cfg.eval.at_start else cfg.eval.interval_steps
+        self.saved_iteration = None  # the iteration last.pt holds, once this run wrote it
         if cfg.resume:
             self.load(cfg.resume)
         self.t0 = time.perf_counter() - self.elapsed
@@ -281,13 +321,21 @@ class Run:
         if bool(finite.all()):
             return
         bad = [k for k, ok in zip(values, finite.tolist()) if not ok]
-        saved = self.out_dir / "diverged_minibatch.pt"
+        saved = self.out_dir / self.diverged_file_name()
         saved.parent.mkdir(parents=True, exist_ok=True)
         torch.save(minibatch.detach().cpu(), saved)
         ckpt = self.out_dir / "checkpoints" / "last.pt"
         raise TrainingDiverged(f"non-finite {', '.join(bad)} at env step {self.env_steps} (iteration "
                                f"{self.iteration + 1}); minibatch saved to {saved}; last good checkpoint: "
                                f"{ckpt if ckpt.exists() else 'none'}")
+
+    def diverged_file_name(self) -> str:
+        """Where a diverged minibatch goes in ``out_dir``: every rank stops on the same non-finite step, and ranks
+        above 0 share the system's temp dir as their ``out_dir`` (``torchsim.algos.train``), with other runs too,
+        so their files carry the rank and the process id."""
+        if self.ranks.is_main:
+            return "diverged_minibatch.pt"
+        return f"diverged_minibatch_rank{self.ranks.rank}_pid{os.getpid()}.pt"
 
     def end_iteration(self, losses: dict) -> None:
         """After an update: log; print a progress line every ``cfg.print_every`` iterations (with the env-steps/s
@@ -363,21 +411,23 @@ class Run:
 
     # -- checkpoints
     def save(self) -> pathlib.Path:
+        """Write ``checkpoints/last.pt`` (rank 0), the one before it kept as ``checkpoints/previous.pt``: tensors and
+        plain containers only, so that it loads with ``weights_only`` (``load_checkpoint``)."""
         path = self.out_dir / "checkpoints" / "last.pt"
         if not self.ranks.is_main:
             return path
         path.parent.mkdir(parents=True, exist_ok=True)
-        torch.save({"cfg": OmegaConf.to_container(self.cfg, resolve=True),
-                    "state": {k: v.state_dict() for k, v in self.state.items()},
-                    "actor": self.actor.state_dict(),
-                    "counters": {"env_steps": self.env_steps, "iteration": self.iteration, "elapsed": self.wall,
-                                 "next_eval": self.next_eval},
-                    "history": self.history, "rng": torch.get_rng_state()}, path.with_suffix(".tmp"))
-        os.replace(path.with_suffix(".tmp"), path)  # atomic: a crash mid-write keeps the previous checkpoint
+        save_checkpoint({"cfg": OmegaConf.to_container(self.cfg, resolve=True),
+                         "state": {k: v.state_dict() for k, v in self.state.items()},
+                         "actor": self.actor.state_dict(),
+                         "counters": {"env_steps": self.env_steps, "iteration": self.iteration, "elapsed": self.wall,
+                                      "next_eval": self.next_eval},
+                         "history": self.history, "rng": torch.get_rng_state()}, path, path.with_name("previous.pt"))
+        self.saved_iteration = self.iteration
         return path
 
     def load(self, path) -> None:
-        ckpt = torch.load(path, map_location=self.cfg.device, weights_only=False)
+        ckpt = load_checkpoint(path, self.cfg.device)
         for k, v in self.state.items():
             v.load_state_dict(ckpt["state"][k])
         c = ckpt["counters"]
@@ -395,7 +445,8 @@ class Run:
         """Save the final checkpoint, plot the curves, render the policy and write ``summary.json`` (rank 0)."""
         if not self.ranks.is_main:
             return
-        self.save()
+        if self.saved_iteration != self.iteration:  # else last.pt has this state and previous.pt the one before
+            self.save()
         plot_curves(self.history, self.out_dir / "curves.png", f"{self.cfg.algo.name} {self.cfg.env.name}")
         if self.cfg.video.enabled:
             self.sync_eval_norm()

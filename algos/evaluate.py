@@ -13,10 +13,9 @@ trained on).
 import pathlib
 import sys
 
-import torch
 from omegaconf import OmegaConf
 
-from torchsim.algos.common import evaluate, load_policy, make_env, video
+from torchsim.algos.common import evaluate, load_checkpoint, load_policy, make_env, video
 
 DEFAULTS = {"checkpoint": "???", "episodes": 16, "max_steps": None, "video": False, "device": "cpu", "seed": None,
             "physics": None}
@@ -26,7 +25,7 @@ def main(argv: list[str]) -> dict:
     args = OmegaConf.create(DEFAULTS)
     OmegaConf.set_struct(args, True)  # unknown keys fail
     args = OmegaConf.merge(args, OmegaConf.from_cli(argv))
-    ckpt = torch.load(args.checkpoint, map_location=args.device, weights_only=False)
+    ckpt = load_checkpoint(args.checkpoint, args.device)
     cfg = OmegaConf.create(ckpt["cfg"])
     trained_on = cfg.get("physics", "torchsim")
     cfg.physics = args.physics or trained_on

@@ -2,9 +2,11 @@
 (``torchsim/train.py`` runs this module).
 
 Configs live in ``torchsim/algos/configs`` (``--cfg job`` prints the composed one); outputs (CSV logs, checkpoints,
-``curves.png``, ``policy.gif``, ``summary.json``) go to the Hydra run dir ``outputs/<algo>_<env>/<time>/``.
+``curves.png``, ``policy.gif``, ``summary.json``) go to the Hydra run dir ``outputs/<algo>_<env>/<time>/`` (with
+``_1``, ``_2``, ... appended where another run started in the same second).
 """
 
+import itertools
 import logging
 import os
 import pathlib
@@ -14,7 +16,7 @@ import tempfile
 import hydra
 import torch
 from hydra.core.hydra_config import HydraConfig
-from omegaconf import DictConfig
+from omegaconf import DictConfig, OmegaConf
 
 import torchsim.algos
 import torchsim.progress
@@ -26,15 +28,44 @@ CONFIG_DIR = str(pathlib.Path(torchsim.algos.__file__).parent / "configs")
 RECIPES = {"ppo": ppo.train, "sac": sac.train, "apg": apg.train}
 
 
+def fresh_run_dir(base: str) -> str:
+    """Create and return ``base``, or ``base_1``, ``base_2``, ... where it exists: a run's own directory even when
+    another run started in the same second (each name is taken by an exclusive mkdir, so two processes, on one
+    machine or on two sharing the disk, never get the same one). The config's ``hydra.run.dir`` is
+    ``${fresh_dir:...}``; cached, as Hydra's ``now``, so that every read of the config sees one directory."""
+    path = pathlib.Path(base)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    for n in itertools.count():
+        candidate = path.with_name(f"{path.name}_{n}") if n else path
+        try:
+            candidate.mkdir()
+        except FileExistsError:
+            continue
+        return str(candidate)
+
+
+OmegaConf.register_new_resolver("fresh_dir", fresh_run_dir, use_cache=True, replace=True)
+
+
 def run(cfg: DictConfig, out_dir) -> Run:
     """Run the recipe ``cfg.algo.name`` with ``cfg``, writing into ``out_dir``; return the finished run. Under
     ``torchrun`` this process is one rank of a data-parallel run (``torchsim.algos.distributed``)."""
+    check_config(cfg)
     ranks = Ranks.from_env(cfg.device)
     try:
         prepare(cfg, ranks)
         return RECIPES[cfg.algo.name](cfg, out_dir, ranks)
     finally:
         ranks.close()
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Refuse settings the run would only trip on later: the iteration counts between progress lines and between
+    checkpoints divide the iteration number (0 would stop the first iteration with a ZeroDivisionError)."""
+    for key in ("print_every", "checkpoint_every"):
+        value = cfg[key]
+        if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+            raise ValueError(f"{key} must be a positive number of iterations, got {value!r}")
 
 
 def prepare(cfg: DictConfig, ranks: Ranks = Ranks()) -> None:

@@ -56,7 +56,9 @@ class TorchsimEnv(EnvBase):
     """Base class of the torchsim tasks (a TorchRL ``EnvBase`` with ``batch_size=(num_envs,)``).
 
     Actions live in ``[-1, 1]^nu`` and map linearly onto each actuator's ``ctrlrange``; actions outside that box
-    are clipped (the reward's control cost sees the clipped, mapped control). Each ``step`` advances the physics
+    are clipped (the reward's control cost sees the clipped, mapped control). An env given a NaN or infinite action
+    is not stepped under it: it runs with zero control and is flagged as diverged (below), not refused with an
+    error, so one bad env does not stop the batch and the step needs no host sync. Each ``step`` advances the physics
     ``frame_skip`` times (``dt = frame_skip * timestep``). Episodes end when the task terminates, when the env's
     physics diverged (flagged by the engine; the env is frozen, reported ``terminated`` and reset like any other),
     or, as truncation, after ``episode_length`` steps.
@@ -126,10 +128,11 @@ class TorchsimEnv(EnvBase):
         xml = self._model_xml()
         self.mj_model = mujoco.MjModel.from_xml_string(xml)
         if isinstance(stepper, str):
-            system = torchsim.load_mjcf(xml, method=method or self.method, substeps=substeps or self.substeps,
+            system = torchsim.load_mjcf(xml, method=method or self.method,
+                                        substeps=self.substeps if substeps is None else substeps,
                                         xpbd_iterations=self.xpbd_iterations, dtype=dtype, device=self.device)
             stepper = torchsim.Stepper(system, stepper)
-        elif (stepper.sys.dtype, stepper.sys.device) != (dtype, self.device) or method or substeps:
+        elif (stepper.sys.dtype, stepper.sys.device) != (dtype, self.device) or method or substeps is not None:
             raise ValueError(f"{type(self).__name__}: a given stepper's System must be in the env's dtype and on its "
                              f"device ({dtype}, {self.device}; got {stepper.sys.dtype}, {stepper.sys.device}) and "
                              "comes with its own method and substeps")
@@ -293,7 +296,13 @@ class TorchsimEnv(EnvBase):
     # ---------------------------------------------------------------------------------------------- public API
     def set_state(self, q: torch.Tensor, qd: torch.Tensor, task: torch.Tensor | None = None) -> torch.Tensor:
         """Put every env at ``q (B, nq)``, ``qd (B, nv)`` (MuJoCo layout) and, if given, task state ``task
-        (B, task_size)`` (else freshly drawn), restart its episode; return the obs."""
+        (B, task_size)`` (else freshly drawn), restart its episode; return the obs. NaN or infinite values are
+        refused (ValueError naming the argument and the envs): unlike a policy's bad action mid-episode, a bad
+        start state is the caller's to fix, not a divergence to flag."""
+        for name, value in (("q", q), ("qd", qd), ("task", task)):
+            if value is not None and not bool(torch.isfinite(value).all()):
+                envs = (~torch.isfinite(value)).reshape(value.shape[0], -1).any(-1).nonzero().flatten().tolist()
+                raise ValueError(f"set_state: {name} holds NaN or infinite values (envs {envs})")
         self.state = torchsim.init(self.sys, q, qd)
         if task is None:
             task = self._sample_task(self.state)
@@ -313,7 +322,8 @@ class TorchsimEnv(EnvBase):
         body's mass and inertia), ``friction_scale`` (every contact pair's sliding friction),
         ``actuator_gain_scale`` (every actuator's strength: its gain and its bias terms together, so a position
         servo's ``kp`` and ``kv`` scale and its set point stays where the control puts it). The model is not
-        rebuilt.
+        rebuilt. Each scale must be finite and positive (ValueError naming the parameter): a zero mass or gain, or a
+        negative one, is no physical body or motor.
         """
         unknown = set(scales) - set(PHYSICS_PARAMS)
         if unknown:
@@ -321,6 +331,9 @@ class TorchsimEnv(EnvBase):
         b = self.base_sys
         s = {k: torch.as_tensor(scales.get(k, 1.0), dtype=b.dtype, device=self.device).expand(self.batch_size)
              for k in PHYSICS_PARAMS}
+        for name, scale in s.items():
+            if not bool((torch.isfinite(scale) & (scale > 0)).all()):
+                raise ValueError(f"set_physics: {name} must be finite and positive, got {scales[name]}")
         mass = s["mass_scale"][:, None]
         self.stepper = self.stepper.for_system(b.replace(
             body_mass=b.body_mass * mass, body_inertia=b.body_inertia * mass[..., None, None],
@@ -393,11 +406,11 @@ class TorchsimEnv(EnvBase):
     def _step(self, tensordict: TensorDictBase) -> TensorDictBase:
         action = tensordict.get("action")
         self._check_action(action)
-        ctrl = self._ctrl(action)
         # A non-finite action (e.g. from a policy that diverged) must reach neither the physics nor the observation:
-        # the env runs with zero control and is flagged as diverged, so it ends and resets like one.
-        bad_action = ~torch.isfinite(ctrl).all(-1)
-        ctrl = torch.where(bad_action[:, None], 0.0, ctrl)
+        # the env runs with zero control and is flagged as diverged, so it ends and resets like one. Checked before
+        # clipping, which would turn +-inf into a full +-1 command; one fused reduction, no host sync.
+        bad_action = ~torch.isfinite(action).all(-1)
+        ctrl = torch.where(bad_action[:, None], 0.0, self._ctrl(action))
         state, task, reward, terminated, truncated, steps = self._advance(self.state, self.task, ctrl,
                                                                           self.step_count, bad_action)
         done = terminated | truncated

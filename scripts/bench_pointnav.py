@@ -26,6 +26,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from _timing import median_rate
+from torchsim.algos.common import load_checkpoint
 from torchsim.algos.ppo import PPO
 from torchsim.algos.train import CONFIG_DIR, prepare
 
@@ -41,11 +42,11 @@ def main():
         cfg = compose(config_name="config", overrides=["env=pointnav", *args.overrides])
     if cfg.algo.name != "ppo" or cfg.env.name != "pointnav":
         raise SystemExit("bench_pointnav.py times the PPO recipe on pointnav (algo=ppo)")
+    ckpt = load_checkpoint(args.checkpoint) if args.checkpoint else None  # a bad file fails before the build
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     prepare(cfg)
     ppo = PPO(cfg)
-    if args.checkpoint:
-        ckpt = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+    if ckpt is not None:
         for key in ("loss", "obs_norm"):
             ppo.state()[key].load_state_dict(ckpt["state"][key])
     a = cfg.algo

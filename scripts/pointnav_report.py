@@ -14,10 +14,9 @@ import pathlib
 
 import matplotlib
 import numpy as np
-import torch
 from omegaconf import OmegaConf
 
-from torchsim.algos.common import evaluate, load_policy, make_env, video
+from torchsim.algos.common import evaluate, load_checkpoint, load_policy, make_env, video
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
@@ -32,7 +31,7 @@ def main():
     p.add_argument("--seed", type=int, default=1, help="the final evaluation's episode seed")
     p.add_argument("--video", default=None, help="folder for pointnav_success.gif and pointnav_failure.gif")
     args = p.parse_args()
-    ckpt = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+    ckpt = load_checkpoint(args.checkpoint)
     h, cfg = ckpt["history"], ckpt["cfg"]
     ev, success, spl = (np.array(h[k]).reshape(-1, 3) for k in ("eval", "eval_success", "eval_spl"))
     train = np.array(h["train"]).reshape(-1, 3)

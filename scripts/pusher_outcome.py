@@ -15,7 +15,7 @@ import torch
 from omegaconf import OmegaConf
 from torchrl.envs import ExplorationType, set_exploration_type
 
-from torchsim.algos.common import load_policy, make_env
+from torchsim.algos.common import load_checkpoint, load_policy, make_env
 
 
 def distances(env) -> tuple[torch.Tensor, torch.Tensor]:
@@ -31,7 +31,7 @@ def main():
     p.add_argument("--episodes", type=int, default=64)
     p.add_argument("--seed", type=int, default=7)
     args = p.parse_args()
-    ckpt = torch.load(args.checkpoint, map_location="cpu", weights_only=False)
+    ckpt = load_checkpoint(args.checkpoint)
     cfg = OmegaConf.create(ckpt["cfg"])
     if cfg.env.name != "pusher":
         raise SystemExit(f"{args.checkpoint} is a {cfg.env.name} policy, not a pusher one")

@@ -73,9 +73,9 @@ def policy_rollout(checkpoint: str, steps: int | None):
     """``(qpos, dt, return, base env, env name)`` of one deterministic episode of a trained policy."""
     from omegaconf import OmegaConf
 
-    from torchsim.algos.common import evaluate, load_policy, make_env
+    from torchsim.algos.common import evaluate, load_checkpoint, load_policy, make_env
 
-    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    ckpt = load_checkpoint(checkpoint)
     cfg = OmegaConf.create(ckpt["cfg"])
     env = make_env(cfg, 1, "cpu")
     actor = load_policy(ckpt, env, "cpu")

@@ -7,9 +7,11 @@
                                                                              # checkpoints/last.pt when rewritten
     python scripts/view.py --policy <ckpt> --save ant.html                   # one episode to a file; no server
 
-The live modes print a URL (default http://localhost:8080; on a remote machine forward the port, e.g.
-``ssh -L 8080:localhost:8080 host``) and play env 0 in real time until Ctrl-C. A saved file holds viser's client
-and the recording: open it in any browser from disk, without torchsim or Python (a playback bar scrubs it).
+The live modes print a URL (default http://127.0.0.1:8080, served to this machine only; on a remote machine forward
+the port, e.g. ``ssh -L 8080:127.0.0.1:8080 host``, or serve every network interface with ``--host 0.0.0.0``, which
+anyone who can reach the machine can then watch) and play env 0 in real time until Ctrl-C. A saved file holds
+viser's client and the recording: open it in any browser from disk, without torchsim or Python (a playback bar
+scrubs it).
 """
 
 import argparse
@@ -28,9 +30,9 @@ def load(checkpoint):
     """``(env, actor, env name)``: one env with the checkpoint's policy (deterministic), on the CPU."""
     from omegaconf import OmegaConf
 
-    from torchsim.algos.common import load_policy, make_env
+    from torchsim.algos.common import load_checkpoint, load_policy, make_env
 
-    ckpt = torch.load(checkpoint, map_location="cpu", weights_only=False)
+    ckpt = load_checkpoint(checkpoint)
     cfg = OmegaConf.create(ckpt["cfg"])
     env = make_env(cfg, 1, "cpu")
     return env, load_policy(ckpt, env, "cpu"), cfg.env.name
@@ -60,7 +62,7 @@ def episode(env, actor, steps: int, on_step=None) -> np.ndarray:
     return np.stack(qpos)
 
 
-def main():
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--env", default="ant", choices=torchsim.envs.list(), help="with random actions")
     p.add_argument("--policy", default=None, help="a checkpoint (checkpoints/last.pt) to run")
@@ -69,17 +71,32 @@ def main():
     p.add_argument("--steps", type=int, default=1000, help="steps per episode at most")
     p.add_argument("--episodes", type=int, default=0, help="live: stop after this many episodes (0: never)")
     p.add_argument("--port", type=int, default=8080)
-    p.add_argument("--host", default="0.0.0.0")
+    p.add_argument("--host", default="127.0.0.1",
+                   help="the address to serve on (default: this machine only; 0.0.0.0: every network interface)")
     p.add_argument("--seed", type=int, default=0)
-    args = p.parse_args()
+    return p
+
+
+def modified(path: pathlib.Path) -> float | None:
+    """``path``'s modification time, or None while it is missing (a training run renames last.pt to previous.pt
+    just before it renames the new one to last.pt)."""
+    try:
+        return path.stat().st_mtime
+    except FileNotFoundError:
+        return None
+
+
+def main():
+    args = parser().parse_args()
     torch.manual_seed(args.seed)
     checkpoint = args.policy or (pathlib.Path(args.watch) / "checkpoints" / "last.pt" if args.watch else None)
     if checkpoint is not None:
-        while not pathlib.Path(checkpoint).exists():  # a run that has not written its first checkpoint yet
+        checkpoint = pathlib.Path(checkpoint)
+        while not checkpoint.exists():  # a run that has not written its first checkpoint yet
             print(f"waiting for {checkpoint}", flush=True)
             time.sleep(5)
+        stamp = modified(checkpoint)  # before loading: a checkpoint written meanwhile is loaded next
         env, actor, name = load(checkpoint)
-        stamp = pathlib.Path(checkpoint).stat().st_mtime
     else:
         env, actor, name = torchsim.envs.make(args.env, num_envs=1), None, args.env
     base = getattr(env, "base_env", env)
@@ -103,8 +120,8 @@ def main():
     try:
         done = 0
         while not args.episodes or done < args.episodes:
-            if args.watch and pathlib.Path(checkpoint).stat().st_mtime != stamp:
-                stamp = pathlib.Path(checkpoint).stat().st_mtime
+            if args.watch and modified(checkpoint) not in (None, stamp):
+                stamp = modified(checkpoint)
                 env, actor, _ = load(checkpoint)
                 base = env.base_env
                 print(f"reloaded {checkpoint}", flush=True)

@@ -151,7 +151,7 @@ def test_a_dead_rank_stops_the_run_and_leaves_the_checkpoint(tmp_path):
     assert stopped_after < 30, f"the run took {stopped_after:.0f} s to stop"
     # torchrun's report names the root cause: the rank that died, and how
     assert re.search(r"Root Cause.*rank\s*: 1 \(local_rank: 1\)\s*exitcode\s*: -9", output, re.S), output[-2000:]
-    saved = torch.load(ckpt, weights_only=False)
+    saved = torch.load(ckpt, weights_only=True)
     assert saved["counters"]["iteration"] >= 1 and set(saved["state"]) >= {"loss", "optim", "obs_norm"}
 
 

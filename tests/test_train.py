@@ -63,7 +63,7 @@ def test_solves_inverted_pendulum(algo, limit, env_steps, tmp_path):
 
 def test_checkpoint_round_trip_and_resume(tmp_path):
     trained = run(tiny("ppo"), tmp_path)
-    ckpt = torch.load(tmp_path / "checkpoints" / "last.pt", weights_only=False)
+    ckpt = torch.load(tmp_path / "checkpoints" / "last.pt", weights_only=True)
     env = make_env(tiny("ppo"), 2, "cpu")
     actor = load_policy(ckpt, env, "cpu")
     for (name, a), b in zip(trained.actor.state_dict().items(), actor.state_dict().values()):
@@ -91,7 +91,7 @@ def test_gaussian_policy_with_a_state_independent_scale(tmp_path):
     deterministic action is its mean, unsquashed; the options survive a checkpoint; unknown values are refused."""
     options = ["algo.policy_net.distribution=normal", "algo.policy_net.scale=parameter"]
     trained = run(tiny("ppo", *options), tmp_path)
-    actor = load_policy(torch.load(tmp_path / "checkpoints" / "last.pt", weights_only=False),
+    actor = load_policy(torch.load(tmp_path / "checkpoints" / "last.pt", weights_only=True),
                         make_env(tiny("ppo"), 5, "cpu"), "cpu")
     obs = TensorDict(observation=3 * torch.randn(5, trained.eval_env.observation_spec["observation"].shape[-1]),
                      batch_size=[5])

@@ -29,7 +29,8 @@ Translation, element by element:
 Rejected with :class:`UnsupportedURDFError`: mesh collision geometry (``ignore_meshes=True`` drops it instead;
 the link keeps its inertial but touches nothing), ``<mimic>`` joints, ``floating``/``planar`` joints, closed loops
 (a link that is the child of two joints), several root links, joints naming unknown links, movable joints without
-``<axis>`` (pytorch-kinematics and the URDF spec disagree on the default), and limited joints with ``lower >= upper``.
+``<axis>`` (pytorch-kinematics and the URDF spec disagree on the default) or with a zero-length one, and limited joints
+with ``lower >= upper``.
 """
 
 import os
@@ -118,6 +119,9 @@ def _parse(text: bytes):
         if j.type != "fixed" and j.axis is None:  # the URDF default is x, pytorch-kinematics' is z
             raise UnsupportedURDFError(f"joint {j.name!r} has no <axis>; write it explicitly (pytorch-kinematics "
                                        "reads a missing axis as z, the URDF spec as x)")
+        if j.type != "fixed" and not np.linalg.norm(j.axis) > 0:  # _joint normalises it: zero or NaN has no direction
+            raise UnsupportedURDFError(f"joint {j.name!r} has a zero-length <axis xyz=\"{_fmt(j.axis)}\">; give the "
+                                       "direction it turns about or slides along")
         if j.type in ("revolute", "prismatic") and j.limit is not None and j.limit.lower >= j.limit.upper:
             raise UnsupportedURDFError(
                 f"joint {j.name!r}: limit lower {j.limit.lower} >= upper {j.limit.upper} (a missing lower/upper "

@@ -31,6 +31,7 @@ One module per part of the model: ``subset`` (the checks), ``bodies``, ``joints`
 ``tendons``, ``equality``, ``fluid``.
 """
 
+import numbers
 import os
 
 import mujoco
@@ -71,7 +72,8 @@ def load_mjcf(
         source: path to an ``.xml`` file, or the XML text itself.
         method: ``"xpbd"`` (position-based projection of joints, limits and contacts) or ``"spring"`` (explicit
             stiff springs for joints and limits, velocity impulses for contacts, in the spirit of Brax v1).
-        substeps: substeps per ``<option timestep>``; default ``ceil(timestep / h)`` with h = 0.5 ms (ant: 20).
+        substeps: substeps per ``<option timestep>``, a positive integer; default ``ceil(timestep / h)`` with h = 0.5 ms
+            (ant: 20).
         joint_stiffness: spring method only: fraction of a joint's error its spring removes per substep
             (gain ``stiffness / h^2 K^-1``, ``K`` the joint's inverse-inertia block).
         joint_damping: spring method only: fraction of a joint's error rate its damper removes per substep.
@@ -97,7 +99,9 @@ def load_mjcf(
         raise ValueError(f"contact_model='soft' is implemented for the spring method only, not {method!r}")
     m = _compile(source)
     check_supported(m)
-    substeps = substeps or max(1, int(np.ceil(m.opt.timestep / METHODS[method].default_substep_timestep - 1e-9)))
+    if substeps is None:
+        substeps = max(1, int(np.ceil(m.opt.timestep / METHODS[method].default_substep_timestep - 1e-9)))
+    _check_substeps(substeps)
     fused, fields = fuse_bodies(m)
     joints, jnt_dof = joint_fields(m, fused)
     fields |= joints | actuator_fields(m, jnt_dof) | geom_fields(m, fused)
@@ -110,6 +114,13 @@ def load_mjcf(
         contact_soft=contact_model == "soft", max_speed=max_speed, max_distance=max_distance, **fields,
     )
     return sys.to(device=device, dtype=dtype)
+
+
+def _check_substeps(substeps) -> None:
+    """A substep lasts ``timestep / substeps``: zero would divide by zero, a negative count step back in time, and a
+    fraction be truncated to a count the caller did not ask for."""
+    if isinstance(substeps, bool) or not isinstance(substeps, numbers.Integral) or substeps < 1:
+        raise ValueError(f"substeps must be a positive integer (substeps per <option timestep>), got {substeps!r}")
 
 
 def _compile(source) -> mujoco.MjModel:

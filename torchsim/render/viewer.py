@@ -3,7 +3,7 @@
     from torchsim.render import Scene
     from torchsim.render.viewer import Viewer, save_html
     scene = Scene.build(env.mj_model, env.sys)
-    viewer = Viewer(scene)                 # prints the URL (http://localhost:8080); open it in a browser
+    viewer = Viewer(scene)                 # prints the URL (http://127.0.0.1:8080); open it in a browser
     viewer.update(env.state)               # pose the bodies as in env 0 of the state (call it every step)
     save_html(scene, (x_pos, x_quat), "rollout.html", dt=env.dt)   # one self-contained file (~1 MB + poses)
 
@@ -20,7 +20,9 @@ with ``+z`` up; the browser's camera then follows the mouse.
 
 import contextlib
 import io
+import ipaddress
 import pathlib
+import warnings
 
 import numpy as np
 import torch
@@ -35,6 +37,16 @@ def _viser():
     except ImportError as err:
         raise ImportError("the viewer needs viser: pip install 'torchsim[viewer]' (or pip install viser)") from err
     return viser
+
+
+def is_loopback(host: str) -> bool:
+    """Whether ``host`` (a name or an address) is this machine's loopback, which no other machine can reach."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:  # a host name: it may resolve to an address others reach
+        return False
 
 
 def geom_mesh(kind: str, size, plane_extent: float = PLANE_EXTENT) -> tuple[np.ndarray, np.ndarray]:
@@ -90,18 +102,24 @@ class Viewer:
     Args:
         scene: the model's :class:`torchsim.render.Scene`.
         host, port: where the server listens (the next free port is taken where ``port`` is busy; see ``url``).
+            The default, ``127.0.0.1``, serves this machine only; any other host (``0.0.0.0``: every network
+            interface) lets anyone who reaches it watch the scene, and the viewer warns so.
         eye, target, fovy: initial camera (world frame, degrees); default: from the ``-y`` side, 20 degrees above,
             looking at the bodies' centre at ``q0``, far enough to frame them.
         plane_extent: half side [m] of the square drawn for infinite planes.
         verbose: let viser print its banner with the URL (and "Server stopped" at :meth:`close`).
     """
 
-    def __init__(self, scene, host: str = "0.0.0.0", port: int = 8080, eye=None, target=None, fovy: float = 45.0,
+    def __init__(self, scene, host: str = "127.0.0.1", port: int = 8080, eye=None, target=None, fovy: float = 45.0,
                  plane_extent: float = PLANE_EXTENT, verbose: bool = True):
         viser = _viser()
         self.scene, self.verbose = scene, verbose
         with self._quiet():
             self.server = viser.ViserServer(host=host, port=port, verbose=verbose)
+        if not is_loopback(host):
+            warnings.warn(f"the viewer listens on {host}, port {self.server.get_port()}: anyone who can reach this "
+                          "machine on the network can watch it (host='127.0.0.1' serves this machine only)",
+                          stacklevel=2)
         self.server.scene.set_up_direction("+z")
         if eye is not None:
             self.set_camera(eye, (0.0, 0.0, 0.0) if target is None else target, fovy)
@@ -120,7 +138,9 @@ class Viewer:
 
     @property
     def url(self) -> str:
-        return f"http://localhost:{self.server.get_port()}"
+        """The address the server is bound to (an IPv6 address in brackets, as URLs write it)."""
+        host = self.server.get_host()
+        return f"http://{f'[{host}]' if ':' in host else host}:{self.server.get_port()}"
 
     def set_camera(self, eye, target, fovy: float = 45.0) -> None:
         """The initial camera (and the one "Reset View" returns to), as :meth:`Camera.look_at`."""
@@ -224,4 +244,4 @@ def trajectory(system, qpos, batch: int = 256) -> tuple[torch.Tensor, torch.Tens
     return torch.cat(pos), torch.cat(quat)
 
 
-__all__ = ["PLANE_EXTENT", "Viewer", "body_poses", "geom_mesh", "save_html", "trajectory"]
+__all__ = ["PLANE_EXTENT", "Viewer", "body_poses", "geom_mesh", "is_loopback", "save_html", "trajectory"]
