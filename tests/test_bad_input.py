@@ -214,3 +214,17 @@ def test_zero_iteration_interval_is_refused_before_training(key, tmp_path):
     with pytest.raises(ValueError, match=f"{key} must be a positive number of iterations, got 0"):
         run(cfg, tmp_path)
     assert not any(tmp_path.iterdir())  # refused before anything ran
+
+
+@pytest.mark.parametrize("field,message", [("q", "state.q must be"), ("x_pos", r"ctrl must have shape \(1, ")])
+def test_step_kernel_refuses_a_state_whose_fields_disagree_on_batch(field, message):
+    """Generated code reads raw memory: a State whose fields hold different batch sizes (``state._replace(q=
+    state.q[:1])``) is refused by name before the kernel runs, not read or written out of bounds (the batch is the
+    poses': ``x_pos`` cut short makes the controls the misfit)."""
+    sys = torchsim.load_mjcf(TWO_HINGES, method="spring", dtype=F64)
+    state = torchsim.init(sys, sys.q0.expand(3, -1).clone(), torch.zeros(3, sys.nv, dtype=F64))
+    stepper = torchsim.Stepper(sys, "kernel")
+    ctrl = torch.zeros(3, sys.nu, dtype=F64)
+    stepper(state, ctrl)
+    with pytest.raises(ValueError, match=message):
+        stepper(state._replace(**{field: getattr(state, field)[:1]}), ctrl)
