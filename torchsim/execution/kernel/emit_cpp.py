@@ -135,7 +135,7 @@ def source(program: Program) -> str:
     for load in program.loads:
         t = program.inputs[load.input]
         fn = "load_mask" if t.mask else "load"
-        loads.append(f"const auto {load.name} = {fn}(in{load.input} + {_offset(t, load.row)}, {t.batch_stride}, b, "
+        loads.append(f"const auto {load.name} = {fn}(in{load.input} + {t.offset_code(load.row)}, {t.batch_stride}, b, "
                      "n);")
     before = [_statement(x) for x in program.before]
     before += [f"V {c} = vec({_c(v)});" for c, v in zip(program.carried, program.carried_init)]
@@ -148,9 +148,9 @@ def source(program: Program) -> str:
     for k, r, v in program.stores:
         t = program.outputs[k]
         if t.mask:
-            stores.append(f"store_mask(out{k} + {_offset(t, r)}, {t.batch_stride}, b, n, {_mask(v)});")
+            stores.append(f"store_mask(out{k} + {t.offset_code(r)}, {t.batch_stride}, b, n, {_mask(v)});")
         else:
-            stores.append(f"store(out{k} + {_offset(t, r)}, {t.batch_stride}, b, n, vec({_c(v)}));")
+            stores.append(f"store(out{k} + {t.offset_code(r)}, {t.batch_stride}, b, n, vec({_c(v)}));")
     block = lambda lines, indent: "\n".join(indent + line for line in lines)  # noqa: E731
     return (_PRELUDE.format(T=T, I=I, W=lanes, bytes=width, suffix=suffix, library=_library(dtype, lanes))
             + f'extern "C" void run(long batch, long begin, long end, long iterations, {args}) {{\n'
@@ -172,11 +172,6 @@ def source(program: Program) -> str:
 
 def _statement(x: Statement) -> str:
     return f"const auto {x.name} = {CPP[x.op].format(*(_c(a) for a in x.args))};"
-
-
-def _offset(t, r: int) -> str:
-    n, times_batch = t.offset(r)
-    return f"{n} * batch" if times_batch else str(n)
 
 
 def _c(v) -> str:

@@ -78,7 +78,7 @@ def source(program: Program) -> str:
     body = []
     for load in program.loads:
         t = program.inputs[load.input]
-        value = f"in{load.input}[{_offset(t, load.row)} + e * {t.batch_stride}]"
+        value = f"in{load.input}[{t.offset_code(load.row)} + e * {t.batch_stride}]"
         body.append(f"const {'bool' if t.mask else 'T'} {load.name} = {value}{' != 0' if t.mask else ''};")
     body += [_statement(x, f) for x in program.before]
     body += [f"T {c} = {_c(v)};" for c, v in zip(program.carried, program.carried_init)]
@@ -93,7 +93,7 @@ def source(program: Program) -> str:
     for k, r, v in program.stores:
         t = program.outputs[k]
         value = f"(unsigned char)({_c(v)})" if t.mask else f"T({_c(v)})"
-        body.append(f"out{k}[{_offset(t, r)} + e * {t.batch_stride}] = {value};")
+        body.append(f"out{k}[{t.offset_code(r)} + e * {t.batch_stride}] = {value};")
     args = ", ".join(params)
     return (_PRELUDE.format(T=T)
             + f"__device__ __forceinline__ void step_env(long long e, long long batch, int iterations, {args}) {{\n"
@@ -110,11 +110,6 @@ def source(program: Program) -> str:
 
 def _statement(x: Statement, f: str) -> str:
     return f"const auto {x.name} = {CUDA[x.op].format(*(_c(a) for a in x.args), f=f)};"
-
-
-def _offset(t, r: int) -> str:
-    n, times_batch = t.offset(r)
-    return f"{n} * batch" if times_batch else str(n)
 
 
 def _c(v) -> str:

@@ -76,9 +76,10 @@ class Layout(NamedTuple):
             return Layout(tuple(offsets), lanes_view.stride(-1), mask)
         raise ValueError(f"a Program reads contiguous lanes or batch-first tensors, not strides {lanes_view.stride()}")
 
-    def offset(self, r: int) -> tuple[int, bool]:
-        """Where row ``r`` starts: ``(n, times_batch)``, ``n`` elements or ``n`` times the batch size."""
-        return self.offsets[r], self.rows_of_batch
+    def offset_code(self, r: int) -> str:
+        """Where row ``r`` starts, in elements, as a C expression (C++ and CUDA C alike) of the batch size
+        ``batch``."""
+        return f"{self.offsets[r]} * batch" if self.rows_of_batch else str(self.offsets[r])
 
 
 def _indices(shape) -> list[tuple[int, ...]]:
