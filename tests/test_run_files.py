@@ -16,16 +16,7 @@ from tensordict import TensorDict
 from torchsim.algos.common import Run, TrainingDiverged, load_checkpoint
 from torchsim.algos.distributed import Ranks
 from torchsim.algos.train import CONFIG_DIR, fresh_run_dir, run
-
-# PPO iterations of 16 env steps on eager physics (budget.env_steps / 16 of them)
-TINY_PPO = ["algo=ppo", "env=inverted_pendulum", "algo.num_envs=8", "algo.unroll=2", "algo.minibatches=2",
-            "budget.env_steps=32", "eval.episodes=2", "eval.max_steps=5", "video.enabled=false", "logger=''",
-            "compile=false", "threads=1"]
-
-
-def tiny_ppo(*overrides):
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        return compose(config_name="config", overrides=[*TINY_PPO, *overrides])
+from tiny_runs import TINY_PPO, tiny_ppo
 
 
 # ------------------------------------------------------------------------------------------------- run directories

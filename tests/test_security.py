@@ -12,22 +12,13 @@ import warnings
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from torchsim.algos import evaluate as evaluate_cli
 from torchsim.algos.common import load_checkpoint
-from torchsim.algos.train import CONFIG_DIR, run
+from torchsim.algos.train import run
+from tiny_runs import tiny_ppo
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
-# two PPO iterations of 16 env steps on eager physics: a real checkpoint in about a second
-TINY_PPO = ["algo=ppo", "env=inverted_pendulum", "algo.num_envs=8", "algo.unroll=2", "algo.minibatches=2",
-            "budget.env_steps=32", "eval.episodes=2", "eval.max_steps=5", "video.enabled=false", "logger=''",
-            "compile=false", "threads=1"]
-
-
-def tiny_ppo(*overrides):
-    with initialize_config_dir(config_dir=CONFIG_DIR, version_base="1.3"):
-        return compose(config_name="config", overrides=[*TINY_PPO, *overrides])
 
 
 def script(name: str, monkeypatch):
