@@ -22,7 +22,7 @@ import torch
 from tensordict import TensorDict
 from torch import nn
 
-from torchsim.algos.common import Run, make_env, make_eval_env, obs_norm
+from torchsim.algos.common import EPISODES, Run, make_env, make_eval_env, obs_norm
 from torchsim.algos.networks import make_actor
 from torchsim.algos.distributed import Ranks
 
@@ -42,6 +42,14 @@ class Rollout:
         b = self.base
         self.obs = b._observation(b.state, b._zero_ctrl())
         self.episode_return = torch.zeros(b.batch_size, dtype=b.sys.dtype, device=b.device)
+
+    def state_dict(self) -> dict:
+        """The carried episodes, for a checkpoint: observation, returns so far and the env's state."""
+        return {"obs": self.obs, "episode_return": self.episode_return, "env": self.base.episode_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.obs, self.episode_return = state["obs"], state["episode_return"]
+        self.base.load_episode_state(state["env"])
 
     def normalise(self, obs: torch.Tensor, update: bool) -> torch.Tensor:
         """``obs`` normalised with the running statistics (after adding it to them, if ``update``); differentiable
@@ -96,9 +104,10 @@ def train(cfg, out_dir, ranks: Ranks = Ranks()) -> Run:
     actor = make_actor(env, a.policy_net, device)
     net = policy_net(actor)
     optim = torch.optim.Adam(actor.parameters(), lr=a.lr)
-    run = Run(cfg, out_dir, {"actor": actor, "optim": optim, "obs_norm": obs_norm(env)}, actor,
-              eval_env=make_eval_env(cfg, env), train_env=env)
+    eval_env = make_eval_env(cfg, env)
     rollout = Rollout(env, gamma=a.gamma)
+    run = Run(cfg, out_dir, {"actor": actor, "optim": optim, "obs_norm": obs_norm(env), EPISODES: rollout}, actor,
+              eval_env=eval_env, train_env=env)
     max_norm = float("inf") if a.max_grad_norm is None else a.max_grad_norm
     while not run.finished():
         loss, record = rollout.unroll(net, a.horizon)

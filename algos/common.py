@@ -17,6 +17,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
+from tensordict import TensorDict
 from torchrl.envs import Compose, ExplorationType, RewardSum, StepCounter, TransformedEnv, set_exploration_type
 from torchrl.envs.transforms import RewardScaling
 from torchrl.modules import ProbabilisticActor
@@ -177,6 +178,56 @@ def load_checkpoint(path, device="cpu") -> dict:
                                      f"containers, which a torchsim checkpoint never does ({err})") from err
 
 
+def restore_rng(ckpt: dict, device: torch.device) -> None:
+    """Continue the random streams of checkpoint ``ckpt``: the CPU generator's saved state goes back to the CPU
+    generator and, for a run on a GPU, the GPU's to ``device``'s. Both states are CPU ByteTensors, as the setters
+    require, whatever device the checkpoint's tensors were loaded onto."""
+    torch.set_rng_state(ckpt["rng"].cpu())
+    if device.type == "cuda" and "cuda_rng" in ckpt:  # none where the checkpointed run ran on the CPU
+        torch.cuda.set_rng_state(ckpt["cuda_rng"].cpu(), device)
+
+
+#: The config keys a resumed run may set anew: how long it runs (``budget``), how it is watched (evaluation, progress
+#: lines, checkpoints, logger, video) and where and how fast it computes (device, threads, compile). The others
+#: define what is learned (algorithm and hyperparameters, networks, env, physics, seed) and must match the
+#: checkpoint's: changing one makes a new run, not a continued one.
+RESUMABLE_KEYS = ("budget", "eval", "print_every", "checkpoint_every", "recent_episodes", "logger", "video", "device",
+                  "threads", "compile", "resume")
+
+
+def check_resumable(ckpt: dict, cfg: DictConfig, world_size: int, path) -> None:
+    """Refuse (ValueError naming each key and both values) to resume checkpoint ``ckpt`` (read from ``path``) with
+    ``cfg`` on ``world_size`` ranks where its config differs outside ``RESUMABLE_KEYS`` or its world size differs
+    (each rank's share of the envs, and their streams, would change)."""
+    changes = config_changes(ckpt["cfg"], cfg)
+    saved_world_size = ckpt.get("world_size")  # None: written before checkpoints recorded it
+    if saved_world_size is not None and saved_world_size != world_size:
+        changes.append(f"world size ({saved_world_size} ranks in the checkpoint, {world_size} now)")
+    if changes:
+        raise ValueError(f"cannot resume {path}: this run differs from the checkpoint's in {'; '.join(changes)}. A "
+                         f"resumed run may change only {', '.join(RESUMABLE_KEYS)}: start a new run to change others")
+
+
+def config_changes(saved: dict, cfg: DictConfig) -> list[str]:
+    """The keys outside ``RESUMABLE_KEYS`` whose values differ between a checkpoint's config ``saved`` and ``cfg``,
+    each with both values. A key that only one of them has (added to the configs after the checkpoint was written,
+    or removed since) has no value to compare with and is left out."""
+    old, new = _flatten(saved), _flatten(OmegaConf.to_container(cfg, resolve=True))
+    return [f"{key} ({old[key]!r} in the checkpoint, {new[key]!r} now)" for key in old
+            if key in new and old[key] != new[key] and key.split(".")[0] not in RESUMABLE_KEYS]
+
+
+def _flatten(tree: dict, prefix: str = "") -> dict:
+    """``tree``'s leaves by dotted key: ``{"algo": {"lr": 1e-3}}`` -> ``{"algo.lr": 1e-3}`` (a list is a leaf)."""
+    flat = {}
+    for key, value in tree.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{key}."))
+        else:
+            flat[prefix + str(key)] = value
+    return flat
+
+
 def save_checkpoint(ckpt: dict, path: pathlib.Path, previous: pathlib.Path) -> None:
     """Write ``ckpt`` to ``path``, moving the file that was there to ``previous``. It is written under a unique temp
     name beside ``path`` (two writers never share one), flushed and fsynced, and only then renamed, so neither
@@ -254,6 +305,33 @@ def render_gif(env_name: str, qpos: np.ndarray, dt: float, path: pathlib.Path, r
 
 
 # ------------------------------------------------------------------------------------------------------- a training run
+#: ``Run.state`` entries of what a rank's random streams have drawn ahead: the training envs' running episodes
+#: (``RunningEpisodes``, APG's ``Rollout``) and PPO's next minibatch order (its sampler draws it as the last runs
+#: out). Each rank has its own: only rank 0's are saved, and on resume the other ranks, on streams of their own,
+#: start new ones, as rank 0 does from a checkpoint written before these were saved or on another kind of device
+#: (whose generators' states do not fit this one's).
+EPISODES, MINIBATCH_ORDER = "episodes", "minibatch_order"
+
+
+class RunningEpisodes:
+    """The running episodes of a collector's ``env`` as a ``state_dict``: the collector's carried step (the policy's
+    next input, with the episodes' returns and step counts and a recurrent policy's states, which TorchRL 0.14 keeps
+    in ``Collector._carrier``) and the env's own state (``episode_state``). A resumed run restores them to continue
+    those episodes as the uninterrupted run would: starting new ones draws other random numbers, and the runs
+    part."""
+
+    def __init__(self, collector, env: TransformedEnv):
+        self.collector, self.env = collector, env
+
+    def state_dict(self) -> dict:
+        return {"carrier": self.collector._carrier.to_dict(), "env": self.env.base_env.episode_state()}
+
+    def load_state_dict(self, state: dict) -> None:
+        carrier = self.collector._carrier
+        self.collector._carrier = TensorDict(state["carrier"], batch_size=carrier.batch_size, device=carrier.device)
+        self.env.base_env.load_episode_state(state["env"])
+
+
 class Run:
     """Bookkeeping of one training run in ``out_dir``: env-step budget and wall clock, progress lines, TorchRL logger,
     periodic deterministic evaluation, checkpoints (``checkpoints/last.pt``, written only after a finite update, so
@@ -261,14 +339,24 @@ class Run:
     and video.
 
     ``state`` maps names to everything with a ``state_dict`` that a resumed run needs (networks, loss module with
-    its target networks and temperature, optimisers, observation normaliser). With several ``ranks`` only rank 0
-    logs, evaluates (the others pass no ``eval_env``), checkpoints and plots; env steps count every rank's.
+    its target networks and temperature, optimisers, learning-rate schedule, observation normaliser, and what the
+    random stream has drawn ahead: ``EPISODES``, ``MINIBATCH_ORDER``), loaded in its order. With several ``ranks``
+    only rank 0 logs, evaluates (the others pass no ``eval_env``), checkpoints and plots; env steps count every
+    rank's.
+
+    A resumed run (``cfg.resume``, ``load``) continues the checkpointed one as if it had not stopped: same state,
+    episodes, random streams (rank 0's) and counters, so with the same budget it trains as the uninterrupted run
+    would. Its history and wall clock (logs, plots) continue the checkpoint's; ``budget.minutes``, though, counts
+    this session's time only, from its start: a resumed run gets the minutes it is given, whatever the run before
+    it took. A budget the checkpoint has already reached is refused, as is a config that changes what is learned
+    (``RESUMABLE_KEYS``).
     """
 
     def __init__(self, cfg: DictConfig, out_dir, state: dict, actor, eval_env: TransformedEnv | None, train_env,
                  ranks: Ranks = Ranks()):
         self.cfg, self.out_dir, self.state, self.actor = cfg, pathlib.Path(out_dir), state, actor
         self.eval_env, self.train_env, self.ranks = eval_env, train_env, ranks
+        self.device = ranks.device(cfg.device)
         self.logger = get_logger(cfg.logger, logger_name=str(self.out_dir), experiment_name="logs") \
             if ranks.is_main else None
         self.env_steps, self.iteration, self.elapsed = 0, 0, 0.0
@@ -278,11 +366,12 @@ class Run:
         self.recent_success = collections.deque(maxlen=cfg.recent_episodes)  # navigation: STOPs within reach
         self.next_eval = 0 if cfg.eval.at_start else cfg.eval.interval_steps
         self.saved_iteration = None  # the iteration last.pt holds, once this run wrote it
+        self.iteration_s = self.eval_s = 0.0  # the last iteration's and evaluation's wall-clock seconds
+        self.session_t0 = time.perf_counter()  # budget.minutes counts from here
         if cfg.resume:
             self.load(cfg.resume)
-        self.t0 = time.perf_counter() - self.elapsed
+        self.t0 = self.session_t0 - self.elapsed  # the wall clock counts the sessions before this one too
         self.t_last, self.steps_last = time.perf_counter(), self.env_steps
-        self.iteration_s = self.eval_s = 0.0  # the last iteration's and evaluation's wall-clock seconds
         self.unprinted_s, self.unprinted_steps = 0.0, 0  # training time and env steps since the last progress line
 
     # -- budget
@@ -291,13 +380,21 @@ class Run:
         return time.perf_counter() - self.t0
 
     def finished(self) -> bool:
-        """Whether a budget is spent: env steps, an eval return reached, or wall-clock minutes, where the run also
-        stops early enough that its final evaluation (timed as the last one) ends within the budget."""
+        return self.spent_budget() is not None
+
+    def spent_budget(self) -> str | None:
+        """The budget that is spent, with what was reached, or None: env steps, an eval return reached, or this
+        session's wall-clock minutes, where the run also stops early enough that its final evaluation (timed as the
+        last one) ends within the budget."""
         b = self.cfg.budget
-        return ((b.env_steps is not None and self.env_steps >= b.env_steps)
-                or (b.minutes is not None and self.wall + self.iteration_s + self.eval_s >= 60 * b.minutes)
-                or (b.eval_return is not None and bool(self.history["eval"])
-                    and self.history["eval"][-1][2] >= b.eval_return))
+        session_s = time.perf_counter() - self.session_t0
+        if b.env_steps is not None and self.env_steps >= b.env_steps:
+            return f"budget.env_steps={b.env_steps} (env step {self.env_steps})"
+        if b.minutes is not None and session_s + self.iteration_s + self.eval_s >= 60 * b.minutes:
+            return f"budget.minutes={b.minutes}"
+        if b.eval_return is not None and self.history["eval"] and self.history["eval"][-1][2] >= b.eval_return:
+            return f"budget.eval_return={b.eval_return} (eval return {self.history['eval'][-1][2]:.2f})"
+        return None
 
     # -- per iteration
     def record_batch(self, data) -> None:
@@ -382,7 +479,7 @@ class Run:
         """Evaluate, record and log; return the progress-line text (return, and success for goal tasks)."""
         self.sync_eval_norm()
         start = time.perf_counter()
-        result = evaluate(self.eval_env, self.actor, self.cfg.eval.max_steps, seed=self.cfg.eval.seed)
+        result = evaluate(self.eval_env, self.actor, self.cfg.eval.max_steps, seed=self.eval_seed())
         self.eval_s = time.perf_counter() - start
         mean = result.ret.mean().item()
         self.history["eval"].append((self.env_steps, self.wall, mean))
@@ -403,6 +500,15 @@ class Run:
         self.log(metrics)
         return text
 
+    def eval_seed(self) -> int:
+        """``eval.seed``, or where it is null one of each evaluation's own, from the run's seed and env step: fresh
+        start states at every evaluation, drawn from a stream of their own, not the training's, so that an
+        evaluation (as the one a run makes where its budget ends) leaves the training as it would have been without
+        it."""
+        if self.cfg.eval.seed is not None:
+            return self.cfg.eval.seed
+        return int(np.random.SeedSequence([self.cfg.seed, self.env_steps]).generate_state(1)[0])
+
     def sync_eval_norm(self) -> None:
         """Evaluate with the training normaliser's current statistics, frozen."""
         norm = obs_norm(self.eval_env)
@@ -417,27 +523,46 @@ class Run:
         if not self.ranks.is_main:
             return path
         path.parent.mkdir(parents=True, exist_ok=True)
-        save_checkpoint({"cfg": OmegaConf.to_container(self.cfg, resolve=True),
-                         "state": {k: v.state_dict() for k, v in self.state.items()},
-                         "actor": self.actor.state_dict(),
-                         "counters": {"env_steps": self.env_steps, "iteration": self.iteration, "elapsed": self.wall,
-                                      "next_eval": self.next_eval},
-                         "history": self.history, "rng": torch.get_rng_state()}, path, path.with_name("previous.pt"))
+        ckpt = {"cfg": OmegaConf.to_container(self.cfg, resolve=True), "world_size": self.ranks.world_size,
+                "state": {k: v.state_dict() for k, v in self.state.items()},
+                "actor": self.actor.state_dict(),
+                "counters": {"env_steps": self.env_steps, "iteration": self.iteration, "elapsed": self.wall,
+                             "next_eval": self.next_eval},
+                "recent": {"returns": list(self.recent), "successes": list(self.recent_success)},
+                "history": self.history, "rng": torch.get_rng_state()}
+        if self.device.type == "cuda":  # the envs' and the policy's draws on the GPU
+            ckpt["cuda_rng"] = torch.cuda.get_rng_state(self.device)
+        save_checkpoint(ckpt, path, path.with_name("previous.pt"))
         self.saved_iteration = self.iteration
         return path
 
     def load(self, path) -> None:
-        ckpt = load_checkpoint(path, self.cfg.device)
-        for k, v in self.state.items():
-            v.load_state_dict(ckpt["state"][k])
+        """Continue the run checkpointed at ``path`` (see the class): its tensors load onto this rank's device; rank 0
+        continues the checkpoint's random streams and what they drew ahead (``EPISODES``), the other ranks, whose
+        streams the checkpoint does not hold, start streams of their own. Refused (ValueError) where the config
+        changes what is learned (``check_resumable``) or a budget is already spent."""
+        ckpt = load_checkpoint(path, self.device)
+        check_resumable(ckpt, self.cfg, self.ranks.world_size, path)
+        same_streams = self.ranks.is_main and torch.device(ckpt["cfg"]["device"]).type == self.device.type
+        for name, part in self.state.items():
+            if name in (EPISODES, MINIBATCH_ORDER) and not (same_streams and name in ckpt["state"]):
+                continue  # not this rank's streams, or not saved: drawn anew (EPISODES)
+            part.load_state_dict(ckpt["state"][name])
         c = ckpt["counters"]
         self.env_steps, self.iteration, self.elapsed, self.next_eval = (c["env_steps"], c["iteration"], c["elapsed"],
                                                                       c["next_eval"])
         self.history.update(ckpt["history"])
+        recent = ckpt.get("recent", {"returns": [], "successes": []})  # absent from checkpoints before it was saved
+        self.recent.extend(recent["returns"])
+        self.recent_success.extend(recent["successes"])
         if self.ranks.is_main:
-            torch.set_rng_state(ckpt["rng"])
+            restore_rng(ckpt, self.device)
         else:  # rank 0's stream would make this rank's envs repeat rank 0's
             torch.manual_seed(self.cfg.seed + self.ranks.rank + self.ranks.world_size * self.iteration)
+        spent = self.spent_budget()
+        if spent is not None:
+            raise ValueError(f"cannot resume {path}: its run has already reached {spent}; raise that budget, or set "
+                             f"it to null, to train on")
         log.info(f"resumed from {path} at env step {self.env_steps}")
 
     # -- end of run

@@ -8,7 +8,8 @@
 - ``lr_warmup_steps``: the rate climbs linearly from 0 over this many env steps;
 - ``anneal_lr`` with ``lr_decay``: then it falls to 0 at ``budget.env_steps``, ``linear`` or ``cosine``.
 
-The schedule steps once per update (``frames`` env steps, every rank's together).
+The schedule steps once per update (``frames`` env steps, every rank's together). A resumed run continues it from
+the update it reached, towards the resumed run's ``budget.env_steps``.
 """
 
 import math
@@ -42,7 +43,25 @@ def make_schedule(optim: torch.optim.Optimizer, a: DictConfig, budget_env_steps,
         raise ValueError("algo.anneal_lr needs budget.env_steps: the learning rate reaches 0 there")
     warmup = -(-int(a.lr_warmup_steps) // frames)
     total = -(-int(budget_env_steps) // frames) if a.anneal_lr else None
-    return torch.optim.lr_scheduler.LambdaLR(optim, _Factor(warmup, total, a.lr_decay))
+    return _BudgetSchedule(optim, _Factor(warmup, total, a.lr_decay))
+
+
+class _BudgetSchedule(torch.optim.lr_scheduler.LambdaLR):
+    """A ``LambdaLR`` whose checkpoint holds only its position (the updates done), not the budget its factor was made
+    for: a resumed run's rate follows that run's own ``budget.env_steps`` from the update it resumes at. (LambdaLR's
+    own state restores the factor's attributes, so a finished run resumed with a larger budget kept the old one and
+    trained at rate 0.)"""
+
+    def state_dict(self) -> dict:
+        return {"last_epoch": self.last_epoch}
+
+    def load_state_dict(self, state_dict: dict) -> None:
+        """Continue at the saved update, setting the optimiser's rate to this schedule's there: it replaces the rate
+        the optimiser's own state brought back, which the old budget set (so the optimiser loads first)."""
+        self.last_epoch = state_dict["last_epoch"]
+        for group, base_lr, factor in zip(self.optimizer.param_groups, self.base_lrs, self.lr_lambdas, strict=True):
+            group["lr"] = base_lr * factor(self.last_epoch)  # what LambdaLR.step computes there
+        self._last_lr = [group["lr"] for group in self.optimizer.param_groups]
 
 
 class _Factor:

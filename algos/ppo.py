@@ -17,7 +17,8 @@ from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from torchsim.algos.common import Run, make_env, make_eval_env, maybe_compile, obs_norm
+from torchsim.algos.common import (EPISODES, MINIBATCH_ORDER, Run, RunningEpisodes, make_env, make_eval_env,
+                                   maybe_compile, obs_norm)
 from torchsim.algos.nav_policy import is_recurrent
 from torchsim.algos.networks import make_actor, make_state_probe, make_value
 from torchsim.algos.distributed import Ranks
@@ -74,11 +75,14 @@ class PPO:
                             k.value_target}
 
     def state(self) -> dict:
-        """What a checkpoint holds and a resumed run restores."""
+        """What a checkpoint holds and a resumed run restores, in that order: the schedule after the optimiser, whose
+        rate it sets."""
         state = {"loss": self.loss_module, "optim": self.optim, "obs_norm": obs_norm(self.env)}
         if self.state_probe is not None:
             state["state_probe"] = self.state_probe.readout
-        return state if self.lr_schedule is None else {**state, "lr_schedule": self.lr_schedule}
+        if self.lr_schedule is not None:
+            state["lr_schedule"] = self.lr_schedule
+        return {**state, EPISODES: RunningEpisodes(self.collector, self.env), MINIBATCH_ORDER: self.batches.sampler}
 
     def update(self, data, check_update) -> dict:
         """Up to ``epochs`` passes over ``data`` (num_envs, unroll), fewer if an epoch's mean approximate KL from

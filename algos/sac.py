@@ -10,7 +10,7 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate
 
-from torchsim.algos.common import Run, make_env, make_eval_env, maybe_compile, obs_norm
+from torchsim.algos.common import EPISODES, Run, RunningEpisodes, make_env, make_eval_env, maybe_compile, obs_norm
 from torchsim.algos.networks import make_actor, make_value
 from torchsim.algos.distributed import Ranks
 
@@ -29,11 +29,13 @@ def train(cfg, out_dir, ranks: Ranks = Ranks()) -> Run:
     # one optimiser suffices: SACLoss detaches what each of its three losses must not train
     optim = torch.optim.Adam(loss_module.parameters(), lr=a.lr)
     buffer = TensorDictReplayBuffer(storage=LazyTensorStorage(a.buffer_size, device=device), batch_size=a.batch_size)
-    run = Run(cfg, out_dir, {"loss": loss_module, "optim": optim, "obs_norm": obs_norm(env)}, actor,
-              eval_env=make_eval_env(cfg, env), train_env=env)
+    eval_env = make_eval_env(cfg, env)
     collector = Collector(env, actor, frames_per_batch=a.num_envs * a.unroll, total_frames=-1, device=device,
                           auto_register_policy_transforms=False,
                           init_random_frames=0 if cfg.resume else a.random_frames)
+    # the replay buffer is not checkpointed: a resumed run refills it from its own steps
+    run = Run(cfg, out_dir, {"loss": loss_module, "optim": optim, "obs_norm": obs_norm(env),
+                             EPISODES: RunningEpisodes(collector, env)}, actor, eval_env=eval_env, train_env=env)
     loss_fn = maybe_compile(loss_module, cfg)
     for data in collector:
         run.record_batch(data)

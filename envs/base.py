@@ -342,6 +342,27 @@ class TorchsimEnv(EnvBase):
             contact_groups=tuple(g._replace(friction=g.friction * s["friction_scale"][:, None])
                                  for g in b.contact_groups)))
 
+    def episode_state(self) -> dict:
+        """The running episodes, as tensors: physics state, task, step counts, the start states drawn ahead for
+        restarts (``_pooled_starts``) and a pixel env's frame stacks. ``load_episode_state`` puts them back, and the
+        episodes go on as they would have (a training checkpoint holds them, so that a resumed run continues)."""
+        saved = {"state": self.state._asdict(), "task": self.task, "step_count": self.step_count}
+        if self._start_pool is not None:
+            saved["start_pool"], saved["start_pool_used"] = self._start_pool._asdict(), self._start_pool_used
+        if self.pixel_obs is not None:
+            saved["frames"] = self.pixel_obs.frames
+        return saved
+
+    def load_episode_state(self, saved: dict) -> None:
+        """Continue the episodes of ``saved`` (``episode_state``, of an env of this task and batch)."""
+        self.state, self.task = State(**saved["state"]), saved["task"]
+        self.step_count.copy_(saved["step_count"])
+        pool = saved.get("start_pool")
+        self._start_pool = None if pool is None else State(**pool)
+        self._start_pool_used = saved.get("start_pool_used", 0)
+        if self.pixel_obs is not None:
+            self.pixel_obs.frames = saved["frames"]
+
     @property
     def sys(self) -> "torchsim.System":
         """The System the env steps: ``base_sys``, with per-env parameters after ``set_physics``."""

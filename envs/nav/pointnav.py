@@ -106,6 +106,22 @@ class PointNav(EnvBase):
         if seed is not None:
             self.rng.manual_seed(int(seed))
 
+    #: what an env's running episode holds (besides the generator of the draws, ``rng``)
+    EPISODE_FIELDS = ("layout", "pos", "heading", "goal", "field", "geo", "start_geo", "path_len", "step_count",
+                      "depth")
+
+    def episode_state(self) -> dict:
+        """The running episodes and the generator that draws the next ones, as tensors; ``load_episode_state`` puts
+        them back, and the episodes go on as they would have (a training checkpoint holds them, so that a resumed
+        run continues)."""
+        return {**{name: getattr(self, name) for name in self.EPISODE_FIELDS}, "rng": self.rng.get_state()}
+
+    def load_episode_state(self, saved: dict) -> None:
+        """Continue the episodes of ``saved`` (``episode_state``, of an env of this split and batch)."""
+        for name in self.EPISODE_FIELDS:
+            setattr(self, name, saved[name])
+        self.rng.set_state(saved["rng"].cpu())  # a generator's state is a CPU ByteTensor, whatever its device
+
     # ------------------------------------------------------------------------------------------ geometry
     def cell_centres(self, cells: torch.Tensor) -> torch.Tensor:
         """Centres [m] (x, y) of flat cell indices ``cells``."""
