@@ -23,6 +23,10 @@ import torch.distributed as dist
 #: How long a collective waits for a missing rank before it fails (torchrun's agent normally stops the other
 #: ranks first, within seconds of one dying).
 TIMEOUT = datetime.timedelta(minutes=5)
+#: How long the other ranks wait while rank 0 works alone (evaluates, checkpoints, logs) at the end of an iteration:
+#: an evaluation of a slow env may take longer than :data:`TIMEOUT`, and a rank that died meanwhile is still
+#: caught by torchrun's agent, so this only guards against a rank 0 that hangs.
+SOLO_WORK_TIMEOUT = datetime.timedelta(hours=24)
 
 
 class Ranks:
@@ -30,24 +34,28 @@ class Ranks:
     with the reductions a PPO update needs. ``Ranks()`` is a plain single process."""
 
     def __init__(self, rank: int = 0, world_size: int = 1, local_rank: int = 0, local_world_size: int = 1,
-                 comm_device: str = "cpu"):
+                 comm_device: str = "cpu", solo_work_group=None):
         self.rank, self.world_size = rank, world_size
         self.local_rank, self.local_world_size = local_rank, local_world_size
         self.comm_device = torch.device(comm_device)  # where NCCL's collectives want small tensors (gloo: the CPU)
+        self.solo_work_group = solo_work_group  # gloo, SOLO_WORK_TIMEOUT: what `agree` waits on
 
     @classmethod
-    def from_env(cls, device: str) -> "Ranks":
+    def from_env(cls, device: str, timeout: datetime.timedelta = TIMEOUT,
+                 solo_work_timeout: datetime.timedelta = SOLO_WORK_TIMEOUT) -> "Ranks":
         """The ranks ``torchrun`` describes in the environment (``WORLD_SIZE``, ``RANK``, ...), joining its process
-        group (NCCL for ``device=cuda``, gloo on CPU); a single process where ``WORLD_SIZE`` is unset or 1."""
+        group (NCCL for ``device=cuda``, gloo on CPU; collectives wait ``timeout`` for a missing rank) and a gloo
+        group for :meth:`agree` (``solo_work_timeout``); a single process where ``WORLD_SIZE`` is unset or 1."""
         world = int(os.environ.get("WORLD_SIZE", "1"))
         if world == 1:
             return cls()
         cuda = torch.device(device).type == "cuda"
         local_rank = int(os.environ.get("LOCAL_RANK", "0"))
         if not dist.is_initialized():
-            dist.init_process_group("nccl" if cuda else "gloo", timeout=TIMEOUT)
+            dist.init_process_group("nccl" if cuda else "gloo", timeout=timeout)
+        solo_work_group = dist.new_group(backend="gloo", timeout=solo_work_timeout)
         return cls(dist.get_rank(), world, local_rank, int(os.environ.get("LOCAL_WORLD_SIZE", str(world))),
-                   f"cuda:{local_rank}" if cuda else "cpu")
+                   f"cuda:{local_rank}" if cuda else "cpu", solo_work_group)
 
     @property
     def is_main(self) -> bool:
@@ -121,11 +129,13 @@ class Ranks:
             moment.copy_(self.mean(moment))
 
     def agree(self, flag: bool) -> bool:
-        """Rank 0's ``flag`` on every rank (e.g. whether the run has finished, which its wall clock decides)."""
+        """Rank 0's ``flag`` on every rank (e.g. whether the run has finished, which its wall clock decides). The
+        call that follows rank 0's work alone (evaluation, checkpoint): the other ranks wait for it up to
+        :data:`SOLO_WORK_TIMEOUT`, not the collectives' :data:`TIMEOUT`."""
         if not self.parallel:
             return flag
-        value = torch.tensor([float(flag)], device=self.comm_device)
-        dist.broadcast(value, src=0)
+        value = torch.tensor([float(flag)])
+        dist.broadcast(value, src=0, group=self.solo_work_group)
         return bool(value.item())
 
     def close(self) -> None:

@@ -7,6 +7,7 @@
    and one minibatch per epoch makes the joined minibatch the single process's.
 2. ``torchrun`` with one rank killed mid-run: the run stops within seconds, naming the rank, and the last
    checkpoint is intact.
+3. Rank 0 working alone (an evaluation) for longer than the collectives' timeout does not stop the other ranks.
 """
 
 import os
@@ -15,6 +16,7 @@ import shutil
 import signal
 import socket
 import subprocess
+import datetime
 import time
 
 import pytest
@@ -153,6 +155,40 @@ def test_a_dead_rank_stops_the_run_and_leaves_the_checkpoint(tmp_path):
     assert re.search(r"Root Cause.*rank\s*: 1 \(local_rank: 1\)\s*exitcode\s*: -9", output, re.S), output[-2000:]
     saved = torch.load(ckpt, weights_only=True)
     assert saved["counters"]["iteration"] >= 1 and set(saved["state"]) >= {"loss", "optim", "obs_norm"}
+
+
+def _slow_rank_zero(rank: int, port: int, results) -> None:
+    """Two ranks whose collectives time out after 2 s: rank 0 works alone for 4 s, then both agree, then both
+    all-reduce."""
+    os.environ.update(WORLD_SIZE="2", RANK=str(rank), LOCAL_RANK=str(rank), LOCAL_WORLD_SIZE="2",
+                      MASTER_ADDR="127.0.0.1", MASTER_PORT=str(port))
+    import torch.distributed as dist
+
+    from torchsim.algos.distributed import Ranks
+
+    try:
+        ranks = Ranks.from_env("cpu", timeout=datetime.timedelta(seconds=2))
+        if rank == 0:
+            time.sleep(4)  # an evaluation, twice the collectives' timeout
+        finished = ranks.agree(rank == 0)
+        total = torch.ones(1)
+        dist.all_reduce(total)
+        results.put((rank, finished, float(total)))
+        ranks.close()
+    except Exception as err:
+        results.put((rank, f"{type(err).__name__}: {err}", None))
+
+
+def test_rank_zero_working_alone_past_the_collective_timeout_does_not_stop_the_others():
+    ctx = mp.get_context("spawn")
+    results, port = ctx.Queue(), _free_port()
+    procs = [ctx.Process(target=_slow_rank_zero, args=(r, port, results)) for r in range(2)]
+    for p in procs:
+        p.start()
+    outcome = sorted(results.get(timeout=120) for _ in procs)
+    for p in procs:
+        p.join(timeout=30)
+    assert outcome == [(0, True, 2.0), (1, True, 2.0)], outcome
 
 
 def _child_with_rank(parent: int, rank: int) -> int:

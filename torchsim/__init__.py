@@ -7,14 +7,24 @@
     state = stepper(state, ctrl)
 """
 
-from torchsim import kinematics
-from torchsim.io_mjcf import UnsupportedMJCFError, load_mjcf
-from torchsim.io_urdf import UnsupportedURDFError, load_urdf
-from torchsim.kinematics import mj_body_poses
-from torchsim.pipeline import init, step
-from torchsim.state import State
-from torchsim.execution import Stepper
-from torchsim.system import System
+import os
+
+# Idle OpenMP threads (torch's pool, which the CPU step kernel shares) spin ~300k times before they sleep, libgomp's
+# default: on a machine where another process is busy the spinning threads take the cores the working one needs,
+# and the main job fell to 0.06-0.30 of its idle rate; after 1000 spins it keeps 0.4-0.5, idle rate unchanged
+# (scripts/bench_contention.py, docs/reliability.md). libgomp reads this once, when torch loads it: it applies where
+# torchsim is imported before torch (python -m torchsim.train), and an explicit setting wins.
+os.environ.setdefault("GOMP_SPINCOUNT", "1000")
+
+from torchsim import kinematics  # noqa: E402
+from torchsim.io_mjcf import UnsupportedMJCFError, load_mjcf  # noqa: E402
+from torchsim.io_urdf import UnsupportedURDFError, load_urdf  # noqa: E402
+from torchsim.kinematics import mj_body_poses  # noqa: E402
+from torchsim.pipeline import init, step  # noqa: E402
+from torchsim.sensors import sensor, sensordata, sensors_by_name  # noqa: E402
+from torchsim.state import State  # noqa: E402
+from torchsim.execution import Stepper  # noqa: E402
+from torchsim.system import System  # noqa: E402
 
 __all__ = ["load_mjcf", "load_urdf", "UnsupportedURDFError", "init", "step", "Stepper", "State", "System",
-           "UnsupportedMJCFError", "mj_body_poses", "kinematics"]
+           "UnsupportedMJCFError", "mj_body_poses", "kinematics", "sensor", "sensordata", "sensors_by_name"]
