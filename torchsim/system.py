@@ -31,6 +31,25 @@ class ContactGroup(NamedTuple):
     margin: torch.Tensor
 
 
+class SensorGroup(NamedTuple):
+    """All computed sensors of one MuJoCo type, read together (``torchsim.sensors``).
+
+    Attributes:
+        kind: the sensor type's MJCF name, e.g. ``"framepos"``.
+        adr: (S,) each sensor's first address in ``sensordata``.
+        obj: (S,) what each reads, by kind: a qpos address (``jointpos``, ``ballquat``), a qvel address
+            (``jointvel``, ``ballangvel``), a tendon, an actuator, a dof (``jointactuatorfrc``), a sensor frame
+            (frame sensors, ``gyro``, ``velocimeter``, ``magnetometer``) or a subtree row (``subtreecom``,
+            ``subtreelinvel``).
+        ref: (S,) the sensor frame of a frame sensor's reference (0, the world, where it has none); -1 for others.
+    """
+
+    kind: str
+    adr: torch.Tensor
+    obj: torch.Tensor
+    ref: torch.Tensor
+
+
 #: The *batchable* fields of ``System`` and their rank without a batch dimension (contact groups' friction and
 #: margin are batchable too, rank 1).
 BATCHABLE_RANK = {"body_mass": 1, "body_inertia": 3, "dof_damping": 1, "dof_armature": 1, "dof_stiffness": 1,
@@ -125,6 +144,17 @@ class System:
         fluid_rot: (E, 3, 3) the element's box axes (columns: its MuJoCo body's principal axes), body frame.
         fluid_damping: (E, 6) viscous coefficients on the box-frame (angular, linear) velocity [N m s, N s/m].
         fluid_drag: (E, 6) quadratic drag coefficients on the same [N m s^2, N s^2/m^2].  fluid_wind: (3,) [m/s].
+    Sensors (MuJoCo's ``<sensor>``, in its ``sensordata`` layout; ``torchsim.sensors`` reads them, never the step):
+        nsensordata: MuJoCo's ``nsensordata``.  sensor_names, sensor_kinds: each sensor's name (``#i`` if unnamed)
+        and type (MJCF name, e.g. ``"gyro"``).  sensor_adr, sensor_dims: its address and width in ``sensordata``
+        (ints).  sensor_skipped: why each is not computed, ``""`` where it is.  sensor_groups: one
+        :class:`SensorGroup` per computed type.  sensor_frame_body: (F,) ext body of each frame sensors read;
+        sensor_frame_pos: (F, 3) its origin from the body COM, body frame [m]; sensor_frame_quat: (F, 4) its
+        orientation in the body frame; frame 0 is the world.  Subtrees as ``K`` terms, each the subtree's
+        members on one fused body at their COM (a frame): sensor_subtree_row, sensor_subtree_frame (K,),
+        sensor_subtree_weight (K,) their share of the subtree's mass.  sensor_magnetic: (3,) MuJoCo's ``magnetic``
+        field, world frame.  sensor_cutoff: (nsensordata,) MuJoCo's ``cutoff`` clamping each real-valued slot to
+        ``[-cutoff, cutoff]`` (inf where none).
     MuJoCo bodies (for poses of fused bodies, e.g. rendering): mjbody_body (nbody,) ext index;
         mjbody_pos, mjbody_quat: frame offset of each MuJoCo body in its fused body's frame.
     """
@@ -261,6 +291,22 @@ class System:
     fluid_damping: torch.Tensor
     fluid_drag: torch.Tensor
     fluid_wind: torch.Tensor
+    # sensors
+    nsensordata: int
+    sensor_names: tuple
+    sensor_kinds: tuple
+    sensor_adr: tuple
+    sensor_dims: tuple
+    sensor_skipped: tuple
+    sensor_groups: tuple
+    sensor_frame_body: torch.Tensor
+    sensor_frame_pos: torch.Tensor
+    sensor_frame_quat: torch.Tensor
+    sensor_subtree_row: torch.Tensor
+    sensor_subtree_frame: torch.Tensor
+    sensor_subtree_weight: torch.Tensor
+    sensor_magnetic: torch.Tensor
+    sensor_cutoff: torch.Tensor
     # MuJoCo body frames
     mjbody_body: torch.Tensor
     mjbody_pos: torch.Tensor
@@ -336,10 +382,9 @@ class System:
         def move(x):
             if isinstance(x, torch.Tensor):
                 return x.to(device=device, dtype=dtype if x.is_floating_point() else None)
-            if isinstance(x, ContactGroup):
-                return ContactGroup(x.kind, *(move(t) for t in x[1:]))
-            if isinstance(x, tuple):
-                return tuple(move(t) for t in x)
+            if isinstance(x, tuple):  # a named tuple (ContactGroup, SensorGroup) keeps its type
+                moved = (move(t) for t in x)
+                return type(x)(*moved) if hasattr(x, "_fields") else tuple(moved)
             return x
 
         return dataclasses.replace(self, **{f.name: move(getattr(self, f.name)) for f in dataclasses.fields(self)})

@@ -44,6 +44,7 @@ from torchsim.io_mjcf.equality import equality_fields
 from torchsim.io_mjcf.fluid import fluid_fields
 from torchsim.io_mjcf.geoms import geom_fields
 from torchsim.io_mjcf.joints import joint_fields
+from torchsim.io_mjcf.sensors import sensor_fields
 from torchsim.io_mjcf.subset import UnsupportedMJCFError, check_supported
 from torchsim.io_mjcf.tendons import tendon_fields
 from torchsim.methods import METHODS
@@ -106,6 +107,7 @@ def load_mjcf(
     joints, jnt_dof = joint_fields(m, fused)
     fields |= joints | actuator_fields(m, jnt_dof) | geom_fields(m, fused)
     fields |= tendon_fields(m, jnt_dof) | equality_fields(m, jnt_dof) | fluid_fields(m, fused)
+    fields |= sensor_fields(m, fused, jnt_dof)
     gravity = m.opt.gravity * (0.0 if m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_GRAVITY) else 1.0)
     sys = System(
         nq=m.nq, nv=m.nv, nu=m.nu, timestep=float(m.opt.timestep), substeps=int(substeps), method=method,

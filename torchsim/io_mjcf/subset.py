@@ -21,8 +21,6 @@ def check_supported(m: mujoco.MjModel) -> None:
             raise UnsupportedMJCFError(
                 f"<{element}> is not supported by torchsim ({count} found); see torchsim.io_mjcf for the supported subset"
             )
-    if m.nsensor:
-        warnings.warn(f"{m.nsensor} <sensor> elements are ignored by torchsim", stacklevel=3)
 
 
 def name(m: mujoco.MjModel, obj, i: int) -> str:

@@ -1,0 +1,228 @@
+"""MuJoCo ``<sensor>`` elements -> torchsim sensors: each sensor's type, object, reference frame and place in
+MuJoCo's ``sensordata``, grouped by type for ``torchsim.sensors``.
+
+Sensors read the State: joint, tendon and actuator positions and velocities, frame poses and velocities of bodies,
+geoms, sites and (fixed) cameras, subtree centres of mass and their velocities, gyros, velocimeters and
+magnetometers, and, given the controls, actuator forces. Sensors that need accelerations or constraint forces
+(``accelerometer``, ``touch``, ``force``, ``torque``, ``framelinacc``, ...), ray casts (``rangefinder``), the
+simulation time (``clock``: the State has none) or a history (``delay``, ``interval``) are kept in the layout but
+not computed: one warning names them, their ``sensordata`` slots read NaN and reading one by name raises.
+``cutoff`` clamps as in MuJoCo; ``noise`` is ignored (MuJoCo itself adds none: it is metadata for the user).
+"""
+
+import warnings
+from collections import defaultdict
+from typing import NamedTuple
+
+import mujoco
+import numpy as np
+import torch
+
+from torchsim.io_mjcf.bodies import FusedBodies, compose
+from torchsim.io_mjcf.subset import name
+from torchsim.system import SensorGroup
+
+Obj = mujoco.mjtObj
+Sens = mujoco.mjtSensor
+
+#: MJCF element name of each sensor type (``mjtSensor``), for the names users read and the warning.
+KIND = {int(t): n for t, n in {
+    Sens.mjSENS_JOINTPOS: "jointpos", Sens.mjSENS_JOINTVEL: "jointvel", Sens.mjSENS_BALLQUAT: "ballquat",
+    Sens.mjSENS_BALLANGVEL: "ballangvel", Sens.mjSENS_TENDONPOS: "tendonpos", Sens.mjSENS_TENDONVEL: "tendonvel",
+    Sens.mjSENS_ACTUATORPOS: "actuatorpos", Sens.mjSENS_ACTUATORVEL: "actuatorvel",
+    Sens.mjSENS_ACTUATORFRC: "actuatorfrc", Sens.mjSENS_JOINTACTFRC: "jointactuatorfrc",
+    Sens.mjSENS_TENDONACTFRC: "tendonactuatorfrc", Sens.mjSENS_FRAMEPOS: "framepos",
+    Sens.mjSENS_FRAMEQUAT: "framequat", Sens.mjSENS_FRAMEXAXIS: "framexaxis", Sens.mjSENS_FRAMEYAXIS: "frameyaxis",
+    Sens.mjSENS_FRAMEZAXIS: "framezaxis", Sens.mjSENS_FRAMELINVEL: "framelinvel",
+    Sens.mjSENS_FRAMEANGVEL: "frameangvel", Sens.mjSENS_SUBTREECOM: "subtreecom",
+    Sens.mjSENS_SUBTREELINVEL: "subtreelinvel", Sens.mjSENS_GYRO: "gyro", Sens.mjSENS_VELOCIMETER: "velocimeter",
+    Sens.mjSENS_MAGNETOMETER: "magnetometer",
+}.items()}
+#: The computed kinds by what their group's ``obj`` indexes (``System.sensor_groups``).
+QPOS_KINDS, QVEL_KINDS = ("jointpos", "ballquat"), ("jointvel", "ballangvel")
+TENDON_KINDS = ("tendonpos", "tendonvel", "tendonactuatorfrc")
+ACTUATOR_KINDS = ("actuatorpos", "actuatorvel", "actuatorfrc")
+FRAME_KINDS = ("framepos", "framequat", "framexaxis", "frameyaxis", "framezaxis", "framelinvel", "frameangvel",
+               "gyro", "velocimeter", "magnetometer")
+SUBTREE_KINDS = ("subtreecom", "subtreelinvel")
+#: The MjModel field prefix of each object type frame sensors read besides bodies.
+PREFIX = {int(Obj.mjOBJ_GEOM): "geom", int(Obj.mjOBJ_SITE): "site", int(Obj.mjOBJ_CAMERA): "cam"}
+#: Why the other sensor types are not computed.
+NEEDS = {int(t): why for t, why in {
+    Sens.mjSENS_ACCELEROMETER: "accelerations", Sens.mjSENS_FRAMELINACC: "accelerations",
+    Sens.mjSENS_FRAMEANGACC: "accelerations", Sens.mjSENS_TOUCH: "contact forces",
+    Sens.mjSENS_FORCE: "constraint forces", Sens.mjSENS_TORQUE: "constraint forces",
+    Sens.mjSENS_CONTACT: "contact forces", Sens.mjSENS_TACTILE: "contact forces",
+    Sens.mjSENS_JOINTLIMITPOS: "MuJoCo's constraint rows", Sens.mjSENS_JOINTLIMITVEL: "MuJoCo's constraint rows",
+    Sens.mjSENS_JOINTLIMITFRC: "constraint forces", Sens.mjSENS_TENDONLIMITPOS: "MuJoCo's constraint rows",
+    Sens.mjSENS_TENDONLIMITVEL: "MuJoCo's constraint rows", Sens.mjSENS_TENDONLIMITFRC: "constraint forces",
+    Sens.mjSENS_RANGEFINDER: "ray casts", Sens.mjSENS_GEOMDIST: "geom distances",
+    Sens.mjSENS_GEOMNORMAL: "geom distances", Sens.mjSENS_GEOMFROMTO: "geom distances",
+    Sens.mjSENS_INSIDESITE: "site volumes", Sens.mjSENS_CAMPROJECTION: "camera projections",
+    Sens.mjSENS_CLOCK: "the simulation time, which the State does not keep",
+    Sens.mjSENS_E_POTENTIAL: "energies", Sens.mjSENS_E_KINETIC: "energies", Sens.mjSENS_SUBTREEANGMOM: "inertias",
+    Sens.mjSENS_USER: "user code", Sens.mjSENS_PLUGIN: "a plugin",
+}.items()}
+
+
+class _Frames:
+    """The frames sensors read, each once: ``(ext body, position from its COM and orientation in its frame)``;
+    frame 0 is the world's (the reference of sensors without one)."""
+
+    def __init__(self, world: int):
+        self.rows = [(world, np.zeros(3), np.array([1.0, 0, 0, 0]))]
+        self.index = {}
+
+    def add(self, key, body: int, pos: np.ndarray, quat: np.ndarray) -> int:
+        if key not in self.index:
+            self.index[key] = len(self.rows)
+            self.rows.append((body, pos, quat))
+        return self.index[key]
+
+
+def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
+    """The System's sensor fields (``System`` documents them); ``jnt_dof``: MuJoCo joint id -> torchsim dof."""
+    frames = _Frames(fused.index[0])
+    subtrees = {}  # MuJoCo body -> subtree row
+    groups = defaultdict(list)  # kind -> [(adr, obj, ref)]
+    skipped = []
+    for i in range(m.nsensor):
+        kind = KIND.get(int(m.sensor_type[i]))
+        why = _not_computed(m, i, kind)
+        if why:
+            skipped.append(why)
+            continue
+        skipped.append("")
+        obj_type, obj, ref_type, ref = (int(x) for x in (m.sensor_objtype[i], m.sensor_objid[i],
+                                                          m.sensor_reftype[i], m.sensor_refid[i]))
+        if kind in FRAME_KINDS:
+            row = (_frame(m, fused, frames, obj_type, obj), _frame(m, fused, frames, ref_type, ref) if ref >= 0 else 0)
+        elif kind in QPOS_KINDS:
+            row = (m.jnt_qposadr[obj], -1)
+        elif kind in QVEL_KINDS:
+            row = (m.jnt_dofadr[obj], -1)
+        elif kind == "jointactuatorfrc":
+            row = (jnt_dof[obj], -1)
+        elif kind in SUBTREE_KINDS:
+            row = (subtrees.setdefault(obj, len(subtrees)), -1)
+        else:  # TENDON_KINDS, ACTUATOR_KINDS: MuJoCo's tendon and actuator order is torchsim's
+            row = (obj, -1)
+        groups[kind].append((m.sensor_adr[i], *row))
+    kinds = tuple(KIND.get(int(t), mujoco.mjtSensor(t).name.removeprefix("mjSENS_").lower()) for t in m.sensor_type)
+    _warn_skipped(m, kinds, skipped)
+    terms = _subtree_terms(m, fused, frames, subtrees)
+    cutoff = np.full(m.nsensordata, np.inf)
+    for i in range(m.nsensor):
+        if m.sensor_cutoff[i] > 0 and m.sensor_datatype[i] == int(mujoco.mjtDataType.mjDATATYPE_REAL):
+            cutoff[m.sensor_adr[i]:m.sensor_adr[i] + m.sensor_dim[i]] = m.sensor_cutoff[i]
+    body, pos, quat = zip(*frames.rows)
+    return dict(
+        nsensordata=int(m.nsensordata),
+        sensor_names=tuple(name(m, Obj.mjOBJ_SENSOR, i) for i in range(m.nsensor)), sensor_kinds=kinds,
+        sensor_adr=tuple(int(a) for a in m.sensor_adr), sensor_dims=tuple(int(d) for d in m.sensor_dim),
+        sensor_skipped=tuple(skipped),
+        sensor_groups=tuple(SensorGroup(kind, *(torch.as_tensor(np.array([r[k] for r in rows], dtype=np.int64))
+                                                for k in range(3)))
+                            for kind, rows in sorted(groups.items())),
+        sensor_frame_body=torch.as_tensor(np.array(body, dtype=np.int64)),
+        sensor_frame_pos=torch.as_tensor(np.array(pos)), sensor_frame_quat=torch.as_tensor(np.array(quat)),
+        sensor_subtree_row=torch.as_tensor(np.array([t.row for t in terms], dtype=np.int64)),
+        sensor_subtree_frame=torch.as_tensor(np.array([t.frame for t in terms], dtype=np.int64)),
+        sensor_subtree_weight=torch.as_tensor(np.array([t.weight for t in terms], dtype=float)),
+        sensor_magnetic=torch.as_tensor(m.opt.magnetic.copy()), sensor_cutoff=torch.as_tensor(cutoff),
+    )
+
+
+def _not_computed(m: mujoco.MjModel, i: int, kind: str | None) -> str:
+    """Why sensor ``i`` is not computed ("" if it is)."""
+    if m.sensor_delay[i] > 0 or m.sensor_interval[i, 0] > 0:
+        return "its delay or interval needs a history of states"
+    if kind is None:
+        return f"it needs {NEEDS.get(int(m.sensor_type[i]), 'what torchsim does not model')}"
+    obj_type, obj = int(m.sensor_objtype[i]), int(m.sensor_objid[i])
+    if kind in FRAME_KINDS:
+        objects = [(obj_type, obj)] + ([(int(m.sensor_reftype[i]), int(m.sensor_refid[i]))]
+                                       if m.sensor_refid[i] >= 0 else [])
+        if any(t == Obj.mjOBJ_CAMERA and m.cam_mode[o] != int(mujoco.mjtCamLight.mjCAMLIGHT_FIXED)
+               for t, o in objects):
+            return "its camera is not fixed to its body (mode)"
+        bodies = [_body(m, t, o) for t, o in objects]
+    else:
+        bodies = _subtree_bodies(m, obj) if kind in SUBTREE_KINDS else []
+    if any(m.body_mocapid[b] >= 0 for b in bodies):  # fused into the world, they would read the model's pose
+        return "it reads a mocap body, whose pose is a System parameter (sys.mocap_pos, sys.mocap_quat)"
+    if kind == "jointactuatorfrc" and (m.jnt_actfrclimited[obj] or m.jnt_actgravcomp[obj]):
+        return "its joint's actuatorfrcrange or actuatorgravcomp is not modelled"
+    if kind in SUBTREE_KINDS and _subtree_mass(m, obj) < mujoco.mjMINVAL:
+        return "its subtree has no mass"
+    return ""
+
+
+def _warn_skipped(m: mujoco.MjModel, kinds: tuple, skipped: list) -> None:
+    by_kind = defaultdict(list)
+    for i, why in enumerate(skipped):
+        if why:
+            by_kind[f"{kinds[i]} ({why})"].append(repr(name(m, Obj.mjOBJ_SENSOR, i)))
+    if by_kind:
+        listed = "; ".join(f"{kind}: {', '.join(names)}" for kind, names in by_kind.items())
+        warnings.warn(f"sensors not computed by torchsim (their sensordata reads NaN, reading one by name raises): "
+                      f"{listed}", stacklevel=4)
+
+
+def _frame(m: mujoco.MjModel, fused: FusedBodies, frames: _Frames, obj_type: int, obj: int) -> int:
+    """The frame index of object ``obj`` of type ``obj_type``: MuJoCo's ``mjOBJ_BODY`` is the body's inertial
+    frame (``xipos``, ``ximat``), ``mjOBJ_XBODY`` its frame (``xpos``, ``xmat``); geoms, sites and cameras theirs."""
+    if obj_type == Obj.mjOBJ_BODY:
+        local = (m.body_ipos[obj], m.body_iquat[obj])
+    elif obj_type == Obj.mjOBJ_XBODY:
+        local = (np.zeros(3), np.array([1.0, 0, 0, 0]))
+    else:
+        local = (getattr(m, f"{PREFIX[obj_type]}_pos")[obj], getattr(m, f"{PREFIX[obj_type]}_quat")[obj])
+    body = _body(m, obj_type, obj)
+    pos, quat = compose(*fused.frame[body], *local)
+    return frames.add((obj_type, obj), fused.body_of(m, body), pos - fused.com_of(m, body), quat)
+
+
+def _body(m: mujoco.MjModel, obj_type: int, obj: int) -> int:
+    """The MuJoCo body that object ``obj`` of type ``obj_type`` (a frame sensor's object or reference) moves with."""
+    return obj if obj_type in (Obj.mjOBJ_BODY, Obj.mjOBJ_XBODY) else int(getattr(m, f"{PREFIX[obj_type]}_bodyid")[obj])
+
+
+def _subtree_bodies(m: mujoco.MjModel, root: int) -> list:
+    """MuJoCo body ``root`` and its descendants (MuJoCo numbers a parent before its children)."""
+    inside = {root}
+    for b in range(root + 1, m.nbody):
+        if m.body_parentid[b] in inside:
+            inside.add(b)
+    return sorted(inside)
+
+
+def _subtree_mass(m: mujoco.MjModel, root: int) -> float:
+    return float(m.body_mass[_subtree_bodies(m, root)].sum())
+
+
+class _Term(NamedTuple):
+    row: int
+    frame: int
+    weight: float
+
+
+def _subtree_terms(m: mujoco.MjModel, fused: FusedBodies, frames: _Frames, subtrees: dict) -> list:
+    """Each subtree row as terms ``(row, frame, weight)``: the members it holds of each fused body, at their
+    centre of mass (a frame), weighted by their share of the subtree's mass; the subtree's COM is the terms'
+    weighted sum."""
+    terms = []
+    for root, row in subtrees.items():
+        members = defaultdict(list)
+        for b in _subtree_bodies(m, root):
+            members[fused.body_of(m, b)].append(b)
+        total = _subtree_mass(m, root)
+        for body, group in members.items():
+            mass = m.body_mass[group]
+            if mass.sum() == 0:
+                continue
+            coms = [compose(*fused.frame[b], m.body_ipos[b], m.body_iquat[b])[0] for b in group]
+            com = (mass[:, None] * np.array(coms)).sum(0) / mass.sum() - fused.com_of(m, group[0])
+            frame = frames.add(("subtree", root, body), body, com, np.array([1.0, 0, 0, 0]))
+            terms.append(_Term(row, frame, float(mass.sum() / total)))
+    return terms

@@ -1,0 +1,191 @@
+"""MuJoCo's sensors read from a State: ``(system, state) -> (B, nsensordata)`` in MuJoCo's ``sensordata`` layout.
+
+    data = torchsim.sensordata(sys, state)                  # (B, nsensordata), MuJoCo's layout
+    gyro = torchsim.sensor(sys, state, "imu_gyro")          # (B, 3), one sensor by name
+    obs = torchsim.sensors_by_name(sys, state, ctrl)        # {name: (B, dim)} of every computed sensor
+
+Batched and differentiable torch ops on the public (batch-first) State, never part of the step. The values are
+MuJoCo's definitions evaluated at the State: frames (sites, geoms, bodies, cameras) from the body poses, where
+``State.x_pos`` is each body's centre of mass; velocities of points from the body's COM velocity and angular
+velocity; joint, tendon and actuator quantities from ``q``/``qd``. Actuator forces (``actuatorfrc``,
+``jointactuatorfrc``, ``tendonactuatorfrc``) follow the actuator model at the given controls, as MuJoCo's
+``actuator_force``; the State does not keep the last controls, so these take ``ctrl``. After ``mj_step`` MuJoCo's
+``sensordata`` holds the values at the state the step started from: compare with these at that State.
+
+Which types are computed, and why the others are not: ``torchsim.io_mjcf.sensors``. ``System`` documents the fields.
+"""
+
+import torch
+
+from torchsim import lanes, spatial, tendons
+from torchsim.io_mjcf.sensors import FRAME_KINDS, SUBTREE_KINDS
+from torchsim.io_mjcf.subset import UnsupportedMJCFError
+from torchsim.kinematics import _addresses, with_world
+from torchsim.pipeline import check, to_lanes_state
+from torchsim.state import State
+from torchsim.system import SensorGroup, System
+
+#: The sensor types that read actuator forces, which depend on the controls.
+FORCE_KINDS = ("actuatorfrc", "jointactuatorfrc", "tendonactuatorfrc")
+AXIS_COLUMN = {"framexaxis": 0, "frameyaxis": 1, "framezaxis": 2}
+
+
+def sensordata(sys: System, state: State, ctrl: torch.Tensor | None = None) -> torch.Tensor:
+    """Every sensor ``(B, nsensordata)`` in MuJoCo's ``sensordata`` layout; the slots of sensors torchsim does not
+    compute (``sys.sensor_skipped``) read NaN. ``ctrl (B, nu)``: needed where the model has actuator-force
+    sensors."""
+    return lanes.from_lanes(_read(sys, state, ctrl, sys.sensor_groups))
+
+
+def sensor(sys: System, state: State, name: str, ctrl: torch.Tensor | None = None) -> torch.Tensor:
+    """Sensor ``name``'s value ``(B, dim)``; ``ctrl (B, nu)`` for an actuator-force sensor. Raises for a name the
+    model lacks and for a sensor torchsim does not compute."""
+    i = _index(sys, name)
+    groups = tuple(g for g in sys.sensor_groups if g.kind == sys.sensor_kinds[i])
+    adr = sys.sensor_adr[i]
+    return lanes.from_lanes(_read(sys, state, ctrl, groups)[adr:adr + sys.sensor_dims[i]])
+
+
+def sensors_by_name(sys: System, state: State, ctrl: torch.Tensor | None = None) -> dict:
+    """``{name: (B, dim)}`` for every sensor torchsim computes, in MuJoCo's order."""
+    data = sensordata(sys, state, ctrl)
+    return {n: data[:, a:a + d] for n, a, d, skipped in
+            zip(sys.sensor_names, sys.sensor_adr, sys.sensor_dims, sys.sensor_skipped) if not skipped}
+
+
+def _index(sys: System, name: str) -> int:
+    if name not in sys.sensor_names:
+        raise KeyError(f"the model has no sensor {name!r}; its sensors: {', '.join(sys.sensor_names) or 'none'}")
+    i = sys.sensor_names.index(name)
+    if sys.sensor_skipped[i]:
+        raise UnsupportedMJCFError(f"sensor {name!r} ({sys.sensor_kinds[i]}) is not computed by torchsim: "
+                                   f"{sys.sensor_skipped[i]}")
+    return i
+
+
+class _Frames:
+    """The sensor frames in the world, lanes layout ``(3|4, F, B)``: origin, orientation, origin's velocity and
+    angular velocity."""
+
+    def __init__(self, sys: System, state: State):
+        bodies = with_world(*to_lanes_state(state)[:4])
+        pos, quat, vel, ang = (t.index_select(-2, sys.sensor_frame_body) for t in bodies)
+        offset = spatial.quat_rotate(quat, lanes.param(sys.sensor_frame_pos, 1, 1))  # from the body COM
+        self.pos = pos + offset
+        self.quat = spatial.quat_mul(quat, lanes.param(sys.sensor_frame_quat, 1, 1))
+        self.vel = vel + spatial.cross(ang, offset)
+        self.ang = ang
+
+    def at(self, index: torch.Tensor):
+        return tuple(t.index_select(-2, index) for t in (self.pos, self.quat, self.vel, self.ang))
+
+
+def _frame_values(sys: System, frames: _Frames, group: SensorGroup) -> torch.Tensor:
+    """A frame sensor group's values ``(dim, S, B)``: the object frame relative to the reference frame, as
+    MuJoCo's (the world where a sensor names none); gyros, velocimeters and magnetometers in their site's frame."""
+    pos, quat, vel, ang = frames.at(group.obj)
+    ref_pos, ref_quat, ref_vel, ref_ang = frames.at(group.ref)
+    kind = group.kind
+    if kind == "framepos":
+        return spatial.quat_rotate_inv(ref_quat, pos - ref_pos)
+    if kind == "framequat":
+        return spatial.quat_mul(spatial.quat_conj(ref_quat), quat)
+    if kind in AXIS_COLUMN:  # a column of the object's rotation matrix
+        return spatial.quat_rotate_inv(ref_quat, spatial.quat_to_mat(quat)[:, AXIS_COLUMN[kind]])
+    if kind == "framelinvel":  # relative to the reference frame, which turns at ref_ang
+        return spatial.quat_rotate_inv(ref_quat, vel - ref_vel - spatial.cross(ref_ang, pos - ref_pos))
+    if kind == "frameangvel":
+        return spatial.quat_rotate_inv(ref_quat, ang - ref_ang)
+    if kind == "gyro":
+        return spatial.quat_rotate_inv(quat, ang)
+    if kind == "velocimeter":
+        return spatial.quat_rotate_inv(quat, vel)
+    assert kind == "magnetometer", kind
+    return spatial.quat_rotate_inv(quat, lanes.param(sys.sensor_magnetic, 0, 1).unsqueeze(-1).expand_as(pos))
+
+
+def _subtree_values(sys: System, frames: _Frames, group: SensorGroup) -> torch.Tensor:
+    """``subtreecom`` / ``subtreelinvel`` ``(3, S, B)``: the mass-weighted mean of the subtree's terms' positions
+    or velocities (``System.sensor_subtree_*``)."""
+    pos, _, vel, _ = frames.at(sys.sensor_subtree_frame)
+    weighted = (pos if group.kind == "subtreecom" else vel) * lanes.param(sys.sensor_subtree_weight, 1)
+    terms = sys.sensor_subtree_row.shape[0]  # as many rows as terms at most: a static shape, no device read
+    mean = weighted.new_zeros(3, terms, weighted.shape[-1]).index_add(-2, sys.sensor_subtree_row, weighted)
+    return mean.index_select(-2, group.obj)
+
+
+def actuator_forces(sys: System, q: torch.Tensor, qd: torch.Tensor, ctrl: torch.Tensor) -> torch.Tensor:
+    """MuJoCo's ``actuator_force`` ``(U, B)`` at dof coordinates ``q, qd (D, B)`` (lanes) and controls ``ctrl
+    (U, B)``, as ``torchsim.actuators.dof_forces`` applies it: ``gain ctrl + b0 + b1 length + b2 velocity``
+    (:func:`actuator_coordinates`), ``ctrl`` and the force clamped where limited."""
+    length, velocity = actuator_coordinates(sys, q, qd)
+    lo, hi = lanes.param(sys.act_ctrl_range, 2).unbind(-2)
+    ctrl = torch.where(lanes.param(sys.act_ctrl_limited, 1), torch.minimum(torch.maximum(ctrl, lo), hi), ctrl)
+    b0, b1, b2 = lanes.param(sys.act_bias, 2).unbind(-2)
+    force = lanes.param(sys.act_gain, 1) * ctrl + b0 + b1 * length + b2 * velocity
+    f_lo, f_hi = lanes.param(sys.act_force_range, 2).unbind(-2)
+    return torch.where(lanes.param(sys.act_force_limited, 1), torch.minimum(torch.maximum(force, f_lo), f_hi), force)
+
+
+def actuator_coordinates(sys: System, q: torch.Tensor, qd: torch.Tensor):
+    """MuJoCo's ``actuator_length`` and ``actuator_velocity`` ``(U, B)`` at dof coordinates ``q, qd (D, B)``."""
+    gear = lanes.param(sys.act_gear, 1)
+    act_dof = sys.act_dof.clamp_min(0)  # -1: tendon transmission
+    return tuple(gear * tendons.actuator_coordinates(sys, x.index_select(-2, act_dof), tendons.lengths(sys, x))
+                 for x in (q, qd))
+
+
+def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -> torch.Tensor:
+    """``sensordata (nsensordata, B)`` (lanes) with the slots of ``groups`` filled in and the others NaN."""
+    batch = state.q.shape[0]
+    q, qd = lanes.to_lanes(state.q), lanes.to_lanes(state.qd)
+    q_dof, qd_dof = q.index_select(0, sys.dof_qpos), qd.index_select(0, sys.dof_qvel)
+    needs_ctrl = [g for g in groups if g.kind in FORCE_KINDS]
+    if needs_ctrl:
+        if ctrl is None:
+            raise ValueError(f"the {needs_ctrl[0].kind} sensors read actuator forces, which depend on the "
+                             "controls: pass ctrl (B, nu)")
+        check(sys, "ctrl", ctrl, sys.nu, batch)
+        force = actuator_forces(sys, q_dof, qd_dof, lanes.to_lanes(ctrl))
+    frames = _Frames(sys, state) if any(g.kind in FRAME_KINDS + SUBTREE_KINDS for g in groups) else None
+    data = q.new_full((sys.nsensordata, batch), float("nan"))
+    for group in groups:
+        kind = group.kind
+        if kind in ("jointpos", "jointvel"):
+            values = (q if kind == "jointpos" else qd).index_select(0, group.obj)[None]
+        elif kind == "ballquat":  # MuJoCo normalises it
+            values = spatial.normalize(q.index_select(0, _addresses(group.obj, 4)).view(4, -1, batch))
+        elif kind == "ballangvel":
+            values = qd.index_select(0, _addresses(group.obj, 3)).view(3, -1, batch)
+        elif kind in ("tendonpos", "tendonvel"):
+            values = tendons.lengths(sys, q_dof if kind == "tendonpos" else qd_dof).index_select(0, group.obj)[None]
+        elif kind in ("actuatorpos", "actuatorvel"):
+            values = actuator_coordinates(sys, q_dof, qd_dof)[kind == "actuatorvel"].index_select(0, group.obj)[None]
+        elif kind == "actuatorfrc":
+            values = force.index_select(0, group.obj)[None]
+        elif kind == "jointactuatorfrc":
+            values = _joint_actuator_forces(sys, force).index_select(0, group.obj)[None]
+        elif kind == "tendonactuatorfrc":
+            on_tendon = torch.where(lanes.param(sys.act_tendon >= 0, 1), force, 0.0)
+            per_tendon = force.new_zeros(sys.ten_limited.shape[0], batch).index_add(
+                0, sys.act_tendon.clamp_min(0), on_tendon)
+            values = per_tendon.index_select(0, group.obj)[None]
+        elif kind in ("subtreecom", "subtreelinvel"):
+            values = _subtree_values(sys, frames, group)
+        else:
+            values = _frame_values(sys, frames, group)
+        data = data.index_copy(0, _addresses(group.adr, values.shape[0]), values.flatten(0, 1))
+    cutoff = lanes.param(sys.sensor_cutoff, 1)
+    return torch.minimum(torch.maximum(data, -cutoff), cutoff)
+
+
+def _joint_actuator_forces(sys: System, force: torch.Tensor) -> torch.Tensor:
+    """MuJoCo's ``qfrc_actuator`` on the hinge and slide dofs ``(D, B)`` of actuator forces ``(U, B)``: ``gear *
+    force`` on a joint actuator's dof, and through each tendon's coefficients for tendon actuators."""
+    geared = lanes.param(sys.act_gear, 1) * force
+    on_tendon = lanes.param(sys.act_tendon >= 0, 1)
+    tau = force.new_zeros(sys.dof_qpos.shape[0], force.shape[-1]).index_add(
+        0, sys.act_dof.clamp_min(0), torch.where(on_tendon, 0.0, geared))
+    per_tendon = force.new_zeros(sys.ten_limited.shape[0], force.shape[-1]).index_add(
+        0, sys.act_tendon.clamp_min(0), torch.where(on_tendon, geared, 0.0))
+    return tendons.add_to_dofs(sys, tau, per_tendon)
