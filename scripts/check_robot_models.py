@@ -1,0 +1,114 @@
+"""Robot model check (issue 53): every MJCF file in dm_control's, gymnasium-robotics' and robosuite's published
+wheels that MuJoCo compiles on its own, loaded by torchsim, and each loaded movable one rolled out passively
+against MuJoCo as ``scripts/check_third_party.py`` does (same rollout, errors and verdict; its docstring).
+
+Model set: every ``*.xml`` anywhere in the three packages; a file MuJoCo cannot compile by itself (an include
+fragment, a robot or gripper part that robosuite assembles in code, a file whose assets are missing) is not a
+standalone model and is only counted. "Movable": ``nv > 0``; "with meshes": a mesh geom, colliding or not.
+
+    OMP_NUM_THREADS=1 python scripts/check_robot_models.py                  # all, summary and table on stdout
+    OMP_NUM_THREADS=1 python scripts/check_robot_models.py --write-docs     # and into docs/physics.md
+    python scripts/check_robot_models.py --packages robosuite --match panda --budget 5
+
+The wheels are downloaded (``pip download --no-deps``) into ``--cache`` and unzipped there on first use.
+"""
+
+import argparse
+import collections
+import platform
+import sys as _sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import mujoco
+import torch
+
+from _docs import replace_section
+from check_third_party import DOCS, ROOT, check, fetch, fmt, summary, table
+
+SECTION = "## Robot models (issue 53)"
+# distribution -> (default version, folder searched inside the wheel)
+PACKAGES = {
+    "dm_control": ("1.0.50", "dm_control"),
+    "gymnasium_robotics": ("1.4.2", "gymnasium_robotics"),
+    "robosuite": ("1.5.2", "robosuite"),
+}
+
+
+def standalone_models(cache: Path, versions: dict, packages: list[str], match: str | None):
+    """(source, path, model) of every file MuJoCo compiles by itself, and how many ``*.xml`` files each package has."""
+    found, files = [], collections.Counter()
+    for dist in packages:
+        folder = fetch(cache, dist, versions[dist]) / PACKAGES[dist][1]
+        for path in sorted(folder.rglob("*.xml")):
+            if match and match not in str(path.relative_to(folder)):
+                continue
+            files[dist] += 1
+            try:
+                found.append((dist, path, mujoco.MjModel.from_xml_path(str(path))))
+            except Exception:  # noqa: BLE001 - not a standalone model (the module docstring)
+                pass
+    return found, files
+
+
+def counts(rows: list[dict], models: dict, files: collections.Counter, packages: list[str]) -> str:
+    """Per package: files, standalone models, and how many of those (movable, movable with meshes) load."""
+    lines = ["| package | xml files | standalone | load | movable | movable, load | movable with meshes | "
+             "movable with meshes, load |", "|" + "---|" * 8]
+    total = collections.Counter()
+    for dist in [*packages, "all"]:
+        mine = [r for r in rows if dist in (r["source"], "all")]
+        movable = [r for r in mine if models[r["key"]].nv > 0]
+        meshed = [r for r in movable if (models[r["key"]].geom_type == mujoco.mjtGeom.mjGEOM_MESH).any()]
+        c = dict(files=files[dist] if dist != "all" else sum(files.values()), standalone=len(mine),
+                 load=sum(r["status"] == "LOAD" for r in mine), movable=len(movable),
+                 movable_load=sum(r["status"] == "LOAD" for r in movable), meshed=len(meshed),
+                 meshed_load=sum(r["status"] == "LOAD" for r in meshed))
+        total.update(c)
+        pct = lambda a, b: f"{c[a]} ({100 * c[a] / c[b]:.0f} %)" if c[b] else "0"  # noqa: E731
+        lines.append(f"| {dist} | {c['files']} | {c['standalone']} | {pct('load', 'standalone')} | {c['movable']} "
+                     f"| {pct('movable_load', 'movable')} | {c['meshed']} | {pct('meshed_load', 'meshed')} |")
+    return "\n".join(lines)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "torchsim" / "third_party")
+    for dist, (version, _) in PACKAGES.items():
+        parser.add_argument(f"--{dist.replace('_', '-')}", dest=dist, default=version, help=f"{dist} version")
+    parser.add_argument("--packages", nargs="+", default=list(PACKAGES), choices=list(PACKAGES))
+    parser.add_argument("--match", help="only files whose path inside the package contains this")
+    parser.add_argument("--budget", type=float, default=10.0, help="seconds per torchsim rollout before it is cut")
+    parser.add_argument("--write-docs", action="store_true", help=f"write the tables into {DOCS.relative_to(ROOT)}")
+    args = parser.parse_args()
+    torch.set_num_threads(1)
+    versions = {dist: getattr(args, dist) for dist in PACKAGES}
+    found, files = standalone_models(args.cache, versions, args.packages, args.match)
+    print(f"{len(found)} standalone models of {sum(files.values())} xml files", flush=True)
+    rows, models, t0 = [], {}, time.perf_counter()
+    for dist, path, model in found:
+        folder = fetch(args.cache, dist, versions[dist]) / PACKAGES[dist][1]
+        name = str(path.relative_to(folder).with_suffix(""))
+        row = check(dist, path, args.budget) | dict(model=name, key=(dist, name))
+        models[row["key"]] = model
+        rows.append(row)
+        print(f"{dist:18s} {name[:50]:50s} {row['status']:8s} {row['verdict']:4s} ts {fmt(row['ts'])} "
+              f"mj {fmt(row['mj'])} {row['time']:6.1f} s  {row['detail'][:100]}", flush=True)
+    total = time.perf_counter() - t0
+    cmd = " ".join(["OMP_NUM_THREADS=1 python scripts/check_robot_models.py", *_sys.argv[1:]])
+    text = "\n\n".join([
+        f"`{cmd}` ({datetime.now(timezone.utc):%Y-%m-%d}, 2-core AMD EPYC VM, CPU, float64; "
+        f"{', '.join(f'{d} {versions[d]}' for d in args.packages)}, MuJoCo {mujoco.__version__}, "
+        f"torch {torch.__version__}, Python {platform.python_version()}; {total:.0f} s in all). Model set and "
+        "counts: the script's docstring; rollout and verdict: `scripts/check_third_party.py`'s (each torchsim "
+        f"rollout cut after {args.budget:g} s, the steps column says where).",
+        counts(rows, models, files, args.packages), summary(rows), table(rows)])
+    print("\n" + text)
+    if args.write_docs:
+        replace_section(DOCS, SECTION, text)
+        print(f"\nwrote {SECTION!r} in {DOCS}")
+
+
+if __name__ == "__main__":
+    main()
