@@ -17,6 +17,7 @@ inertia every impulse on the dof meets, so a heavy rotor is decelerated at ``fri
 
 from typing import NamedTuple
 
+import numpy as np
 import torch
 
 from torchsim import lanes, spatial, rigid
@@ -28,25 +29,30 @@ from torchsim.tendons import impedance
 def hinge_incidence(jnt_child, jnt_parent, dof_jnt, dof_is_hinge, num_bodies: int):
     """Load-time tables of the hinge dofs acting on each body (see ``System.body_hinge_dof``): one row per
     (body, hinge) incidence, body ``(P,)``, dof ``(P,)`` and sign ``(P,)`` (+1 for the child, -1 for the parent),
-    grouped by body; and ``(Q, 2)`` the ordered pairs of incidences on a common body (the coupling's blocks)."""
-    incidences = []
-    for body in range(num_bodies):  # the world takes no impulse
-        for dof, (joint, hinge) in enumerate(zip(dof_jnt, dof_is_hinge)):
-            for end, sign in ((jnt_child[joint], 1.0), (jnt_parent[joint], -1.0)):
-                if hinge and end == body:
-                    incidences.append((body, dof, sign))
-    return incidence_tables(incidences)
+    grouped by body (in dof order within a body); and ``(Q, 2)`` the ordered pairs of incidences on a common body
+    (the coupling's blocks). The world (``num_bodies``) takes no impulse and gets no rows."""
+    incidences = [(end, dof, sign) for dof, (joint, hinge) in enumerate(zip(dof_jnt, dof_is_hinge)) if hinge
+                  for end, sign in ((jnt_child[joint], 1.0), (jnt_parent[joint], -1.0)) if end != num_bodies]
+    return incidence_tables(sorted(incidences, key=lambda row: row[:2]))
 
 
 def incidence_tables(incidences: list):
     """``(body, item, sign)`` incidences, grouped by body, as tensors body ``(P,)``, item ``(P,)``, sign ``(P,)``
-    and the ``(Q, 2)`` ordered pairs of incidences on a common body (the blocks of a coupling through the bodies:
-    hinges here, contact points in ``torchsim.soft_contacts``)."""
-    pairs = [(i, k) for i, (b_i, _, _) in enumerate(incidences)
-             for k, (b_k, _, _) in enumerate(incidences) if b_i == b_k]
-    body, item, sign = (list(col) for col in zip(*incidences)) if incidences else ([], [], [])
-    return (torch.tensor(body, dtype=torch.long), torch.tensor(item, dtype=torch.long),
-            torch.tensor(sign, dtype=torch.float64), torch.tensor(pairs, dtype=torch.long).reshape(-1, 2))
+    and the ``(Q, 2)`` ordered pairs ``(i, k)`` of incidences on a common body, ``i`` ascending and, for each,
+    ``k`` ascending (the blocks of a coupling through the bodies: hinges here, contact points in
+    ``torchsim.soft_contacts``). Linear in ``P + Q`` (a body's ``K`` incidences make ``K^2`` pairs)."""
+    body, item, sign = (np.array(col) for col in zip(*incidences)) if incidences else (np.zeros(0),) * 3
+    body = body.astype(np.int64)
+    # each body's incidences in list order, and where row i's body starts among them
+    order = np.argsort(body, kind="stable")
+    start = np.searchsorted(body[order], body, side="left")
+    count = np.searchsorted(body[order], body, side="right") - start
+    first = np.repeat(np.arange(len(body)), count)
+    rank = np.arange(len(first)) - np.repeat(np.cumsum(count) - count, count)  # k's place among i's body's rows
+    second = order[np.repeat(start, count) + rank]
+    return (torch.as_tensor(body), torch.as_tensor(np.asarray(item, dtype=np.int64)),
+            torch.as_tensor(np.asarray(sign, dtype=np.float64)),
+            torch.as_tensor(np.stack((first, second), -1).astype(np.int64)).reshape(-1, 2))
 
 
 class LimitRows(NamedTuple):

@@ -136,7 +136,8 @@ class System:
         power is 2 (static).  contact_pyramidal: MuJoCo's friction cone is pyramidal (its default; static).
         contact_inc_point, contact_inc_body, contact_inc_sign: (P,) the (point, moving
         body) incidences, grouped by body, sign +1 where the normal pushes the body; contact_inc_pairs: (Q, 2) the
-        ordered pairs of incidences on a common body (the soft contacts' coupling, ``torchsim.soft_contacts``).
+        ordered pairs of incidences on a common body (the soft contacts' coupling, ``torchsim.soft_contacts``);
+        empty unless ``contact_soft``.
     Fluid (MuJoCo's inertia-box model, ``torchsim.fluid``; ``E`` elements, one per moving MuJoCo body with mass):
         fluid: whether the model has a fluid (``density`` or ``viscosity`` > 0; static structure: without it the
         step does no fluid work).  fluid_body: (E,) the ext body carrying each element.

@@ -26,9 +26,11 @@ is harmless):
   anything (``contype``/``conaffinity`` filtered out) only contribute mass and are accepted with a warning.
 - fluid: ``<option density viscosity wind>`` with MuJoCo's inertia-box model (``torchsim.fluid``); geoms with
   ``fluidshape="ellipsoid"`` are refused.
+- sensors: read from the State by ``torchsim.sensor``/``sensordata`` in MuJoCo's ``sensordata`` layout
+  (``torchsim.io_mjcf.sensors`` lists the types computed; the others load with one warning and raise when read).
 
 One module per part of the model: ``subset`` (the checks), ``bodies``, ``joints``, ``actuators``, ``geoms``,
-``tendons``, ``equality``, ``fluid``.
+``tendons``, ``equality``, ``fluid``, ``sensors``.
 """
 
 import numbers
@@ -105,7 +107,7 @@ def load_mjcf(
     _check_substeps(substeps)
     fused, fields = fuse_bodies(m)
     joints, jnt_dof = joint_fields(m, fused)
-    fields |= joints | actuator_fields(m, jnt_dof) | geom_fields(m, fused)
+    fields |= joints | actuator_fields(m, jnt_dof) | geom_fields(m, fused, contact_soft=contact_model == "soft")
     fields |= tendon_fields(m, jnt_dof) | equality_fields(m, jnt_dof) | fluid_fields(m, fused)
     fields |= sensor_fields(m, fused, jnt_dof)
     gravity = m.opt.gravity * (0.0 if m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_GRAVITY) else 1.0)

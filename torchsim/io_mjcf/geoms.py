@@ -23,8 +23,10 @@ SHAPE_NAME = {
 }
 
 
-def geom_fields(m: mujoco.MjModel, fused: FusedBodies) -> dict:
-    """Geom frames relative to their fused body's COM, and the candidate contact pairs grouped by shape pair."""
+def geom_fields(m: mujoco.MjModel, fused: FusedBodies, contact_soft: bool) -> dict:
+    """Geom frames relative to their fused body's COM, and the candidate contact pairs grouped by shape pair;
+    ``contact_soft``: whether the contacts are soft (``load_mjcf(contact_model=...)``), which alone read the
+    contact incidence tables."""
     gpos, gquat = [], []
     for g in range(m.ngeom):
         b = m.geom_bodyid[g]
@@ -72,7 +74,7 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies) -> dict:
         contact_gains=torch.as_tensor(solref_gains(m, solref, solimp)), contact_solimp=torch.as_tensor(solimp),
         contact_invweight=torch.as_tensor(invweight), contact_solimp_square=bool((solimp[:, 4] == 2).all()),
         contact_pyramidal=m.opt.cone == int(mujoco.mjtCone.mjCONE_PYRAMIDAL),
-        **contact_incidence(bodies, fused.index[0]),
+        **contact_incidence(bodies if contact_soft else [], fused.index[0]),
     )
 
 
@@ -80,7 +82,9 @@ def contact_incidence(bodies: list, world: int) -> dict:
     """Load-time tables of which contact points act on which moving body, for the soft contacts' coupled solve
     (``torchsim.soft_contacts``): one row per (point, body), point ``(P,)``, ext body ``(P,)`` and sign ``(P,)``
     (+1 for the pair's first body, which the normal pushes, -1 for the second), grouped by body; and ``(Q, 2)``
-    the ordered pairs of rows on a common body. ``bodies``: each point's two ext bodies; ``world``: the world's."""
+    the ordered pairs of rows on a common body. ``bodies``: each point's two ext bodies (none for impulse
+    contacts, which do not read the tables: a body with ``K`` points makes ``K^2`` pairs, 9.4 million for
+    robosuite's GR1, whose boxes touch each other); ``world``: the world's."""
     rows = sorted((body, point, sign) for point, pair in enumerate(bodies)
                   for body, sign in zip(pair, (1.0, -1.0)) if body != world)
     body, point, sign, pairs = joint_space.incidence_tables(rows)
