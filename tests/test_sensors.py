@@ -174,6 +174,22 @@ def test_cutoff_clamps_real_values(random_states):
     np.testing.assert_array_equal(ours[:, slots(sys, "jointvel")[1]], np.clip(state.qd[:, 6].numpy(), -0.5, 0.5))
 
 
+def test_actuator_sensors_without_tendons():
+    """Actuator sensors of a model without tendons (most models): a geared motor and a limited servo on hinges."""
+    xml = """<mujoco><worldbody><body><joint name="a" axis="0 1 0"/><geom type="capsule" size=".1" fromto="0 0 0 .3 0 0"/>
+      <body pos=".3 0 0"><joint name="b" axis="1 0 0" ref=".2"/><geom type="capsule" size=".05" fromto="0 0 0 .2 0 0"/></body>
+      </body></worldbody>
+      <actuator><motor name="m" joint="a" gear="3"/><position name="p" joint="b" kp="20" forcerange="-1 1"/></actuator>
+      <sensor><actuatorpos actuator="p"/><actuatorvel actuator="m"/><actuatorfrc actuator="m"/>
+        <actuatorfrc actuator="p"/><jointactuatorfrc joint="a"/><jointactuatorfrc joint="b"/></sensor></mujoco>"""
+    m, sys = mujoco.MjModel.from_xml_string(xml), torchsim.load_mjcf(xml, dtype=F64)
+    rng = np.random.default_rng(2)
+    q, qd, ctrl = rng.uniform(-1, 1, (ENVS, 2)), rng.normal(0, 1, (ENVS, 2)), rng.uniform(-1, 1, (ENVS, 2))
+    state = torchsim.init(sys, torch.as_tensor(q), torch.as_tensor(qd))
+    ours = torchsim.sensordata(sys, state, torch.as_tensor(ctrl)).numpy()
+    np.testing.assert_allclose(ours, mujoco_sensordata(m, q, qd, ctrl), rtol=0, atol=1e-9)
+
+
 def test_not_computed_types_warn_and_raise(random_states):
     """Types that need accelerations, contact forces or the time load with one warning naming them; their slots
     are NaN, the dict leaves them out and reading one by name raises naming its type."""

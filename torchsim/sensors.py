@@ -131,8 +131,10 @@ def actuator_coordinates(sys: System, q: torch.Tensor, qd: torch.Tensor):
     """MuJoCo's ``actuator_length`` and ``actuator_velocity`` ``(U, B)`` at dof coordinates ``q, qd (D, B)``."""
     gear = lanes.param(sys.act_gear, 1)
     act_dof = sys.act_dof.clamp_min(0)  # -1: tendon transmission
-    return tuple(gear * tendons.actuator_coordinates(sys, x.index_select(-2, act_dof), tendons.lengths(sys, x))
-                 for x in (q, qd))
+    joint = [x.index_select(-2, act_dof) for x in (q, qd)]
+    if sys.act_on_tendons:  # static: a model without tendon actuators may have no tendons to index
+        joint = [tendons.actuator_coordinates(sys, j, tendons.lengths(sys, x)) for j, x in zip(joint, (q, qd))]
+    return tuple(gear * j for j in joint)
 
 
 def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -> torch.Tensor:
@@ -183,9 +185,11 @@ def _joint_actuator_forces(sys: System, force: torch.Tensor) -> torch.Tensor:
     """MuJoCo's ``qfrc_actuator`` on the hinge and slide dofs ``(D, B)`` of actuator forces ``(U, B)``: ``gear *
     force`` on a joint actuator's dof, and through each tendon's coefficients for tendon actuators."""
     geared = lanes.param(sys.act_gear, 1) * force
+    tau = force.new_zeros(sys.dof_qpos.shape[0], force.shape[-1])
+    if not sys.act_on_tendons:  # static: every actuator acts on its dof
+        return tau.index_add(0, sys.act_dof, geared)
     on_tendon = lanes.param(sys.act_tendon >= 0, 1)
-    tau = force.new_zeros(sys.dof_qpos.shape[0], force.shape[-1]).index_add(
-        0, sys.act_dof.clamp_min(0), torch.where(on_tendon, 0.0, geared))
+    tau = tau.index_add(0, sys.act_dof.clamp_min(0), torch.where(on_tendon, 0.0, geared))
     per_tendon = force.new_zeros(sys.ten_limited.shape[0], force.shape[-1]).index_add(
         0, sys.act_tendon.clamp_min(0), torch.where(on_tendon, geared, 0.0))
     return tendons.add_to_dofs(sys, tau, per_tendon)
