@@ -3,11 +3,12 @@ MuJoCo's ``sensordata``, grouped by type for ``torchsim.sensors``.
 
 Sensors read the State: joint, tendon and actuator positions and velocities, frame poses and velocities of bodies,
 geoms, sites and (fixed) cameras, subtree centres of mass and their velocities, gyros, velocimeters and
-magnetometers, and, given the controls, actuator forces. Sensors that need accelerations or constraint forces
-(``accelerometer``, ``touch``, ``force``, ``torque``, ``framelinacc``, ...), ray casts (``rangefinder``), the
-simulation time (``clock``: the State has none) or a history (``delay``, ``interval``) are kept in the layout but
-not computed: one warning names them, their ``sensordata`` slots read NaN and reading one by name raises.
-``cutoff`` clamps as in MuJoCo; ``noise`` is ignored (MuJoCo itself adds none: it is metadata for the user).
+magnetometers, and, given the controls, actuator forces. Sensors that need accelerations or contact and constraint
+forces (``accelerometer``, ``touch``, ``force``, ``torque``, ``framelinacc``, ...), the simulation time
+(``clock``) or a history (``delay``, ``interval``), and those not implemented yet (``rangefinder``,
+``subtreeangmom``, limit and energy sensors, ...; :data:`WHY`), are kept in the layout but not computed: one
+warning names them, their ``sensordata`` slots read NaN and reading one by name raises. ``cutoff`` clamps as in
+MuJoCo; ``noise`` is ignored, as MuJoCo's engine ignores it (the model only stores it).
 """
 
 import warnings
@@ -48,24 +49,25 @@ SUBTREE_KINDS = ("subtreecom", "subtreelinvel")
 #: The MjModel field prefix of each object type frame sensors read besides bodies.
 PREFIX = {int(Obj.mjOBJ_GEOM): "geom", int(Obj.mjOBJ_SITE): "site", int(Obj.mjOBJ_CAMERA): "cam"}
 #: Why the other sensor types are not computed.
-NEEDS = {int(t): why for t, why in {
-    Sens.mjSENS_ACCELEROMETER: "accelerations", Sens.mjSENS_FRAMELINACC: "accelerations",
-    Sens.mjSENS_FRAMEANGACC: "accelerations", Sens.mjSENS_TOUCH: "contact forces",
-    Sens.mjSENS_FORCE: "constraint forces", Sens.mjSENS_TORQUE: "constraint forces",
-    Sens.mjSENS_CONTACT: "contact forces", Sens.mjSENS_TACTILE: "contact forces",
-    Sens.mjSENS_JOINTLIMITPOS: "MuJoCo's constraint rows", Sens.mjSENS_JOINTLIMITVEL: "MuJoCo's constraint rows",
-    Sens.mjSENS_JOINTLIMITFRC: "constraint forces", Sens.mjSENS_TENDONLIMITPOS: "MuJoCo's constraint rows",
-    Sens.mjSENS_TENDONLIMITVEL: "MuJoCo's constraint rows", Sens.mjSENS_TENDONLIMITFRC: "constraint forces",
-    Sens.mjSENS_RANGEFINDER: "ray casts", Sens.mjSENS_GEOMDIST: "geom distances",
-    Sens.mjSENS_GEOMNORMAL: "geom distances", Sens.mjSENS_GEOMFROMTO: "geom distances",
-    Sens.mjSENS_INSIDESITE: "site volumes", Sens.mjSENS_CAMPROJECTION: "camera projections",
-    Sens.mjSENS_CLOCK: "the simulation time, which the State does not keep",
-    Sens.mjSENS_E_POTENTIAL: "energies", Sens.mjSENS_E_KINETIC: "energies", Sens.mjSENS_SUBTREEANGMOM: "inertias",
-    Sens.mjSENS_USER: "user code", Sens.mjSENS_PLUGIN: "a plugin",
+_ACCELERATIONS = "it needs accelerations, which the State does not hold"
+_FORCES = "it needs contact or constraint forces, which the State does not hold"
+_NOT_YET = "it is not implemented yet (the State holds what it needs)"
+WHY = {int(t): why for t, why in {
+    Sens.mjSENS_ACCELEROMETER: _ACCELERATIONS, Sens.mjSENS_FRAMELINACC: _ACCELERATIONS,
+    Sens.mjSENS_FRAMEANGACC: _ACCELERATIONS, Sens.mjSENS_TOUCH: _FORCES, Sens.mjSENS_FORCE: _FORCES,
+    Sens.mjSENS_TORQUE: _FORCES, Sens.mjSENS_CONTACT: _FORCES, Sens.mjSENS_TACTILE: _FORCES,
+    Sens.mjSENS_JOINTLIMITFRC: _FORCES, Sens.mjSENS_TENDONLIMITFRC: _FORCES,
+    Sens.mjSENS_JOINTLIMITPOS: _NOT_YET, Sens.mjSENS_JOINTLIMITVEL: _NOT_YET, Sens.mjSENS_TENDONLIMITPOS: _NOT_YET,
+    Sens.mjSENS_TENDONLIMITVEL: _NOT_YET, Sens.mjSENS_SUBTREEANGMOM: _NOT_YET, Sens.mjSENS_E_POTENTIAL: _NOT_YET,
+    Sens.mjSENS_E_KINETIC: _NOT_YET, Sens.mjSENS_CAMPROJECTION: _NOT_YET, Sens.mjSENS_INSIDESITE: _NOT_YET,
+    Sens.mjSENS_GEOMDIST: _NOT_YET, Sens.mjSENS_GEOMNORMAL: _NOT_YET, Sens.mjSENS_GEOMFROMTO: _NOT_YET,
+    Sens.mjSENS_RANGEFINDER: "it is not implemented yet (ray casts against the geoms)",
+    Sens.mjSENS_CLOCK: "it needs the simulation time, which the State does not hold",
+    Sens.mjSENS_USER: "it is user code", Sens.mjSENS_PLUGIN: "it is a plugin",
 }.items()}
 
 
-class _Frames:
+class _FrameTable:
     """The frames sensors read, each once: ``(ext body, position from its COM and orientation in its frame)``;
     frame 0 is the world's (the reference of sensors without one)."""
 
@@ -82,7 +84,7 @@ class _Frames:
 
 def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
     """The System's sensor fields (``System`` documents them); ``jnt_dof``: MuJoCo joint id -> torchsim dof."""
-    frames = _Frames(fused.index[0])
+    frames = _FrameTable(fused.index[0])
     subtrees = {}  # MuJoCo body -> subtree row
     groups = defaultdict(list)  # kind -> [(adr, obj, ref)]
     skipped = []
@@ -138,7 +140,7 @@ def _not_computed(m: mujoco.MjModel, i: int, kind: str | None) -> str:
     if m.sensor_delay[i] > 0 or m.sensor_interval[i, 0] > 0:
         return "its delay or interval needs a history of states"
     if kind is None:
-        return f"it needs {NEEDS.get(int(m.sensor_type[i]), 'what torchsim does not model')}"
+        return WHY.get(int(m.sensor_type[i]), "it is not implemented")
     obj_type, obj = int(m.sensor_objtype[i]), int(m.sensor_objid[i])
     if kind in FRAME_KINDS:
         objects = [(obj_type, obj)] + ([(int(m.sensor_reftype[i]), int(m.sensor_refid[i]))]
@@ -169,7 +171,7 @@ def _warn_skipped(m: mujoco.MjModel, kinds: tuple, skipped: list) -> None:
                       f"{listed}", stacklevel=4)
 
 
-def _frame(m: mujoco.MjModel, fused: FusedBodies, frames: _Frames, obj_type: int, obj: int) -> int:
+def _frame(m: mujoco.MjModel, fused: FusedBodies, frames: _FrameTable, obj_type: int, obj: int) -> int:
     """The frame index of object ``obj`` of type ``obj_type``: MuJoCo's ``mjOBJ_BODY`` is the body's inertial
     frame (``xipos``, ``ximat``), ``mjOBJ_XBODY`` its frame (``xpos``, ``xmat``); geoms, sites and cameras theirs."""
     if obj_type == Obj.mjOBJ_BODY:
@@ -207,7 +209,7 @@ class _Term(NamedTuple):
     weight: float
 
 
-def _subtree_terms(m: mujoco.MjModel, fused: FusedBodies, frames: _Frames, subtrees: dict) -> list:
+def _subtree_terms(m: mujoco.MjModel, fused: FusedBodies, frames: _FrameTable, subtrees: dict) -> list:
     """Each subtree row as terms ``(row, frame, weight)``: the members it holds of each fused body, at their
     centre of mass (a frame), weighted by their share of the subtree's mass; the subtree's COM is the terms'
     weighted sum."""
