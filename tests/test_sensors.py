@@ -16,6 +16,7 @@ from models import F64, PENDULUM, random_q
 
 MODEL = """
 <mujoco>
+  <compiler angle="radian"/>
   <option timestep="0.002" magnetic="0.1 -0.4 0.3"/>
   <worldbody>
     <body name="static" pos="1 0 0.5" quat="0.9 0.1 0.3 0">
@@ -28,7 +29,7 @@ MODEL = """
       <site name="imu" pos=".1 .05 -.02" quat="0.8 0.2 -0.3 0.1"/>
       <camera name="cam" pos="-.3 0 .1" xyaxes="0 -1 0 .5 0 .8"/>
       <body name="arm" pos=".2 0 0">
-        <joint name="shoulder" type="hinge" axis="0 1 0" ref="0.3" range="-1 1"/>
+        <joint name="shoulder" type="hinge" axis="0 1 0" ref="0.3" range="-1 1" margin="0.4"/>
         <geom type="capsule" fromto="0 0 0 .3 0 0" size=".03" contype="0" conaffinity="0"/>
         <body name="hand" pos=".3 0 0" quat="0.9 0 0.2 0.1">
           <geom name="hand_geom" type="box" size=".05 .04 .03" pos=".02 .01 0" quat="1 0 .3 0" contype="0" conaffinity="0"/>
@@ -36,7 +37,7 @@ MODEL = """
         </body>
       </body>
       <body name="slider" pos="-.2 0 0">
-        <joint name="slide" type="slide" axis="1 0 0" range="-.2 .2"/>
+        <joint name="slide" type="slide" axis="1 0 0" range="-.2 .2" margin=".05"/>
         <joint name="twist" type="hinge" axis="1 0 0"/>
         <geom type="box" size=".05 .05 .05" contype="0" conaffinity="0"/>
       </body>
@@ -47,7 +48,9 @@ MODEL = """
     </body>
   </worldbody>
   <tendon>
-    <fixed name="tendon"><joint joint="shoulder" coef="1"/><joint joint="slide" coef="-2"/></fixed>
+    <fixed name="tendon" limited="true" range="-.5 .5" margin=".2">
+      <joint joint="shoulder" coef="1"/><joint joint="slide" coef="-2"/>
+    </fixed>
   </tendon>
   <actuator>
     <motor name="shoulder_motor" joint="shoulder" gear="2" ctrlrange="-1 1" ctrllimited="true"/>
@@ -75,6 +78,12 @@ MODEL = """
     <jointactuatorfrc name="shoulder_frc" joint="shoulder"/>
     <jointactuatorfrc name="slide_frc" joint="slide"/>
     <tendonactuatorfrc name="tendon_frc" tendon="tendon"/>
+    <jointlimitpos name="shoulder_limit" joint="shoulder"/>
+    <jointlimitvel name="shoulder_limit_vel" joint="shoulder"/>
+    <jointlimitpos name="slide_limit" joint="slide"/>
+    <jointlimitvel name="slide_limit_vel" joint="slide"/>
+    <tendonlimitpos name="tendon_limit" tendon="tendon"/>
+    <tendonlimitvel name="tendon_limit_vel" tendon="tendon"/>
     <framepos name="tip_pos" objtype="site" objname="fingertip"/>
     <framepos name="tip_from_imu" objtype="site" objname="fingertip" reftype="site" refname="imu"/>
     <framepos name="torso_com" objtype="body" objname="torso"/>
@@ -113,9 +122,12 @@ MODEL = """
 COMPUTED = ("jointpos", "jointvel", "ballquat", "ballangvel", "tendonpos", "tendonvel", "actuatorpos", "actuatorvel",
             "actuatorfrc", "jointactuatorfrc", "tendonactuatorfrc", "framepos", "framequat", "framexaxis",
             "frameyaxis", "framezaxis", "framelinvel", "frameangvel", "subtreecom", "subtreelinvel", "gyro",
-            "velocimeter", "magnetometer")
+            "velocimeter", "magnetometer", "jointlimitpos", "jointlimitvel", "tendonlimitpos", "tendonlimitvel")
 NOT_COMPUTED = {"imu_acc": "accelerometer", "tip_touch": "touch", "time": "clock"}
 ENVS = 4
+#: The shoulder and slide coordinates of the 4 envs: within the margin of the shoulder's lower and upper limits
+#: (range -1..1 rad, margin 0.4) and of the slide's upper and lower limits (range -0.2..0.2 m, margin 0.05).
+SHOULDER_AND_SLIDE = np.array([[-0.9, 0.0], [0.85, -0.05], [0.1, 0.19], [0.2, -0.18]])
 
 
 def load() -> torchsim.System:
@@ -148,6 +160,7 @@ def random_states():
     m, sys = mujoco.MjModel.from_xml_string(MODEL), load()
     rng = np.random.default_rng(0)
     q, qd, ctrl = random_q(m, ENVS, rng), rng.normal(0, 1.5, (ENVS, m.nv)), rng.uniform(-2, 2, (ENVS, m.nu))
+    q[:, 7:9] = SHOULDER_AND_SLIDE
     state = torchsim.init(sys, torch.as_tensor(q), torch.as_tensor(qd))
     ours = torchsim.sensordata(sys, state, torch.as_tensor(ctrl)).numpy()
     return sys, state, torch.as_tensor(ctrl), ours, mujoco_sensordata(m, q, qd, ctrl)
@@ -171,7 +184,8 @@ def test_cutoff_clamps_real_values(random_states):
         i = sys.sensor_names.index(name)
         values = ours[:, sys.sensor_adr[i]:sys.sensor_adr[i] + sys.sensor_dims[i]]
         assert np.abs(values).max() == cutoff, name
-    np.testing.assert_array_equal(ours[:, slots(sys, "jointvel")[1]], np.clip(state.qd[:, 6].numpy(), -0.5, 0.5))
+    shoulder_rate = state.qd[:, 6].numpy()  # after the free joint's 6
+    np.testing.assert_array_equal(ours[:, slots(sys, "jointvel")[1]], np.clip(shoulder_rate, -0.5, 0.5))
 
 
 def test_actuator_sensors_without_tendons():
@@ -188,6 +202,16 @@ def test_actuator_sensors_without_tendons():
     state = torchsim.init(sys, torch.as_tensor(q), torch.as_tensor(qd))
     ours = torchsim.sensordata(sys, state, torch.as_tensor(ctrl)).numpy()
     np.testing.assert_allclose(ours, mujoco_sensordata(m, q, qd, ctrl), rtol=0, atol=1e-9)
+
+
+def test_limit_sensors_read_the_side_within_its_margin(random_states):
+    """Each env puts the shoulder or the slide within the margin of one side of its range (``SHOULDER_AND_SLIDE``):
+    its limit sensors read MuJoCo's constraint distance less the margin and its rate, the other joint's read 0 (and
+    ``test_sensor_type_matches_mujoco`` checks the values)."""
+    sys, _, _, ours, _ = random_states
+    shoulder, slide = (ours[:, slots(sys, "jointlimitpos")[k]] for k in (0, 1))
+    np.testing.assert_allclose(shoulder, [-0.9 + 1 - 0.4, 1 - 0.85 - 0.4, 0, 0], atol=1e-12)
+    np.testing.assert_allclose(slide, [0, 0, 0.2 - 0.19 - 0.05, -0.18 + 0.2 - 0.05], atol=1e-12)
 
 
 def test_not_computed_types_warn_and_raise(random_states):

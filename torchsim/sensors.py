@@ -172,6 +172,12 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
             per_tendon = force.new_zeros(sys.ten_limited.shape[0], batch).index_add(
                 0, sys.act_tendon.clamp_min(0), on_tendon)
             values = per_tendon.index_select(0, group.obj)[None]
+        elif kind in ("jointlimitpos", "jointlimitvel"):
+            values = _limit_values(kind == "jointlimitpos", q_dof, qd_dof, sys.dof_range, sys.dof_margin,
+                                   sys.dof_limited).index_select(0, group.obj)[None]
+        elif kind in ("tendonlimitpos", "tendonlimitvel"):
+            values = _limit_values(kind == "tendonlimitpos", tendons.lengths(sys, q_dof), tendons.lengths(sys, qd_dof),
+                                   sys.ten_range, sys.ten_margin, sys.ten_limited).index_select(0, group.obj)[None]
         elif kind in ("subtreecom", "subtreelinvel"):
             values = _subtree_values(sys, frames, group)
         else:
@@ -179,6 +185,20 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
         data = data.index_copy(0, _addresses(group.adr, values.shape[0]), values.flatten(0, 1))
     cutoff = lanes.param(sys.sensor_cutoff, 1)
     return torch.minimum(torch.maximum(data, -cutoff), cutoff)
+
+
+def _limit_values(position: bool, x: torch.Tensor, rate: torch.Tensor, bounds: torch.Tensor, margin: torch.Tensor,
+                  limited: torch.Tensor) -> torch.Tensor:
+    """MuJoCo's limit sensors ``(R, B)`` of coordinates ``x`` and rates ``rate (R, B)`` (dofs or tendons) with the
+    System fields ``bounds (R, 2)``, ``margin (R,)`` and ``limited (R,)``: of MuJoCo's limit constraint rows, the
+    first side within its margin (the lower before the upper) gives its distance less the margin (``position``) or
+    its rate (positive moving away from that side); 0 where neither side is within its margin."""
+    lo, hi = lanes.param(bounds, 1, 1).unbind(0)
+    margin, limited = lanes.param(margin, 1), lanes.param(limited, 1)
+    below, above = x - lo, hi - x
+    lower, upper = limited & (below < margin), limited & (above < margin)
+    at_lower, at_upper = (below - margin, above - margin) if position else (rate, -rate)
+    return torch.where(lower, at_lower, torch.where(upper, at_upper, 0.0))
 
 
 def _joint_actuator_forces(sys: System, force: torch.Tensor) -> torch.Tensor:

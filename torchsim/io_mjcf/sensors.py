@@ -37,15 +37,19 @@ KIND = {int(t): n for t, n in {
     Sens.mjSENS_FRAMEZAXIS: "framezaxis", Sens.mjSENS_FRAMELINVEL: "framelinvel",
     Sens.mjSENS_FRAMEANGVEL: "frameangvel", Sens.mjSENS_SUBTREECOM: "subtreecom",
     Sens.mjSENS_SUBTREELINVEL: "subtreelinvel", Sens.mjSENS_GYRO: "gyro", Sens.mjSENS_VELOCIMETER: "velocimeter",
-    Sens.mjSENS_MAGNETOMETER: "magnetometer",
+    Sens.mjSENS_MAGNETOMETER: "magnetometer", Sens.mjSENS_JOINTLIMITPOS: "jointlimitpos",
+    Sens.mjSENS_JOINTLIMITVEL: "jointlimitvel", Sens.mjSENS_TENDONLIMITPOS: "tendonlimitpos",
+    Sens.mjSENS_TENDONLIMITVEL: "tendonlimitvel",
 }.items()}
 #: The computed kinds by what their group's ``obj`` indexes (``System.sensor_groups``).
 QPOS_KINDS, QVEL_KINDS = ("jointpos", "ballquat"), ("jointvel", "ballangvel")
-TENDON_KINDS = ("tendonpos", "tendonvel", "tendonactuatorfrc")
+TENDON_KINDS = ("tendonpos", "tendonvel", "tendonactuatorfrc", "tendonlimitpos", "tendonlimitvel")
+DOF_KINDS = ("jointactuatorfrc", "jointlimitpos", "jointlimitvel")
 ACTUATOR_KINDS = ("actuatorpos", "actuatorvel", "actuatorfrc")
 FRAME_KINDS = ("framepos", "framequat", "framexaxis", "frameyaxis", "framezaxis", "framelinvel", "frameangvel",
                "gyro", "velocimeter", "magnetometer")
 SUBTREE_KINDS = ("subtreecom", "subtreelinvel")
+LIMIT_KINDS = ("jointlimitpos", "jointlimitvel", "tendonlimitpos", "tendonlimitvel")
 #: The MjModel field prefix of each object type frame sensors read besides bodies.
 PREFIX = {int(Obj.mjOBJ_GEOM): "geom", int(Obj.mjOBJ_SITE): "site", int(Obj.mjOBJ_CAMERA): "cam"}
 #: Why the other sensor types are not computed.
@@ -57,8 +61,7 @@ WHY = {int(t): why for t, why in {
     Sens.mjSENS_FRAMEANGACC: _ACCELERATIONS, Sens.mjSENS_TOUCH: _FORCES, Sens.mjSENS_FORCE: _FORCES,
     Sens.mjSENS_TORQUE: _FORCES, Sens.mjSENS_CONTACT: _FORCES, Sens.mjSENS_TACTILE: _FORCES,
     Sens.mjSENS_JOINTLIMITFRC: _FORCES, Sens.mjSENS_TENDONLIMITFRC: _FORCES,
-    Sens.mjSENS_JOINTLIMITPOS: _NOT_YET, Sens.mjSENS_JOINTLIMITVEL: _NOT_YET, Sens.mjSENS_TENDONLIMITPOS: _NOT_YET,
-    Sens.mjSENS_TENDONLIMITVEL: _NOT_YET, Sens.mjSENS_SUBTREEANGMOM: _NOT_YET, Sens.mjSENS_E_POTENTIAL: _NOT_YET,
+    Sens.mjSENS_SUBTREEANGMOM: _NOT_YET, Sens.mjSENS_E_POTENTIAL: _NOT_YET,
     Sens.mjSENS_E_KINETIC: _NOT_YET, Sens.mjSENS_CAMPROJECTION: _NOT_YET, Sens.mjSENS_INSIDESITE: _NOT_YET,
     Sens.mjSENS_GEOMDIST: _NOT_YET, Sens.mjSENS_GEOMNORMAL: _NOT_YET, Sens.mjSENS_GEOMFROMTO: _NOT_YET,
     Sens.mjSENS_RANGEFINDER: "it is not implemented yet (ray casts against the geoms)",
@@ -103,7 +106,7 @@ def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
             row = (m.jnt_qposadr[obj], -1)
         elif kind in QVEL_KINDS:
             row = (m.jnt_dofadr[obj], -1)
-        elif kind == "jointactuatorfrc":
+        elif kind in DOF_KINDS:
             row = (jnt_dof[obj], -1)
         elif kind in SUBTREE_KINDS:
             row = (subtrees.setdefault(obj, len(subtrees)), -1)
@@ -155,6 +158,11 @@ def _not_computed(m: mujoco.MjModel, i: int, kind: str | None) -> str:
         return "it reads a mocap body, whose pose is a System parameter (sys.mocap_pos, sys.mocap_quat)"
     if kind == "jointactuatorfrc" and (m.jnt_actfrclimited[obj] or m.jnt_actgravcomp[obj]):
         return "its joint's actuatorfrcrange or actuatorgravcomp is not modelled"
+    if kind in ("jointlimitpos", "jointlimitvel") and int(m.jnt_type[obj]) not in (int(mujoco.mjtJoint.mjJNT_HINGE),
+                                                                                    int(mujoco.mjtJoint.mjJNT_SLIDE)):
+        return "limits of free and ball joints are not modelled"
+    if kind in LIMIT_KINDS and m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_LIMIT):
+        return "limits are disabled (<flag limit>), which torchsim does not model"
     if kind in SUBTREE_KINDS and _subtree_mass(m, obj) < mujoco.mjMINVAL:
         return "its subtree has no mass"
     return ""
