@@ -71,7 +71,8 @@ def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
 SLOW_COMPILE_WARNING = (
     "torchsim.step is being traced by torch.compile: the step then compiles as loop nests over (components, batch), "
     "its substeps unrolled (minutes to build), several times slower on CPU than the engine's own compiled step. For "
-    "that, build a torchsim.Stepper(sys) once and call it (envs: stepper='auto') without torch.compile around it.")
+    "that, build a torchsim.Stepper(sys) once and call it (envs: stepper='auto'): where its strategy is 'kernel', "
+    "a function torch.compile traces around it holds the step as one operator (torchsim.execution.step_op).")
 # dynamo runs warnings.warn after the graph instead of breaking the graph on it (fullgraph=True would fail)
 torch._dynamo.config.reorderable_logging_functions.add(warnings.warn)
 

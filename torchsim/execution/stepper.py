@@ -15,7 +15,9 @@
 :data:`STRATEGIES` is the one place a strategy is chosen: for each method and device type, the strategies that
 can run it, the fastest first. A step that autograd records (an input requires grad, grad mode on) runs as
 ``calls`` on the whole batch, whatever the strategy: its compiled functions have a backward. Steppers hold no
-process-wide state: two Systems with different strategies step side by side.
+process-wide state: two Systems with different strategies step side by side. Under ``torch.compile`` (a caller's
+function traced around a Stepper: an env step, a collector step), a ``kernel`` Stepper is one operator of the
+graph (``execution.step_op``), and CUDA graphs capture its launch; the others trace the reference step.
 """
 
 import threading
@@ -24,6 +26,7 @@ import warnings
 import torch
 
 from torchsim import pipeline
+from torchsim.execution import step_op
 from torchsim.execution.compiled import Compiled
 from torchsim.execution.kernel.step import StepKernel
 from torchsim.execution.kernel.rows import Unsupported
@@ -86,6 +89,8 @@ class Stepper:
         self._lock = threading.Lock()
         self._sys_tensors = [x for x in sys.leaves() if isinstance(x, torch.Tensor)]
         self._kernel_built = None  # (the System tensors' versions, the StepKernel built for them)
+        self.per_env = sys.per_env_parameters()  # where its per-env parameters are: inputs of a traced step
+        self.handle = step_op.register(self)
 
     def __repr__(self) -> str:
         backend = "" if self.compiled.backend == "inductor" else f", backend={self.compiled.backend!r}"
@@ -109,7 +114,11 @@ class Stepper:
 
     def __call__(self, state: State, ctrl: torch.Tensor) -> State:
         sys = self.sys
-        if self.strategy == "eager" or torch.compiler.is_compiling():
+        if torch.compiler.is_compiling():  # a caller's graph: the kernel as one node, else the reference step traced
+            if self.strategy == "kernel" and not pipeline.records_grad(sys, state, ctrl):
+                return step_op.step(self, state, ctrl)
+            return pipeline.step(sys, state, ctrl)
+        if self.strategy == "eager":
             return pipeline.step(sys, state, ctrl)
         pipeline.check(sys, "ctrl", ctrl, sys.nu, state.x_pos.shape[0])
         if pipeline.records_grad(sys, state, ctrl):
@@ -122,6 +131,18 @@ class Stepper:
                 return self(state, ctrl)
             return kernel(sys, state, ctrl)
         return self.compiled.step(self.strategy, state, ctrl)
+
+    @property
+    def needs_building(self) -> bool:
+        """Whether the next step builds (or loads) the kernel first."""
+        return self.strategy == "kernel" and self._kernel_built is None
+
+    def build(self) -> None:
+        """Build or load the kernel now (else on the first step), falling back to the next strategy as a step does."""
+        try:
+            self._kernel()
+        except Unsupported as err:
+            self._fall_back(err)
 
     def _fall_back(self, err: Exception) -> None:
         """The step cannot run as this strategy: use the next one, with one warning."""
