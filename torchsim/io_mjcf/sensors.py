@@ -3,10 +3,10 @@ MuJoCo's ``sensordata``, grouped by type for ``torchsim.sensors``.
 
 Sensors read the State: joint, tendon and actuator positions and velocities, frame poses and velocities of bodies,
 geoms, sites and (fixed) cameras, subtree centres of mass and their velocities, gyros, velocimeters and
-magnetometers, and, given the controls, actuator forces. Sensors that need accelerations or contact and constraint
+magnetometers, joint and tendon limits, and, given the controls, actuator forces. Sensors that need accelerations or contact and constraint
 forces (``accelerometer``, ``touch``, ``force``, ``torque``, ``framelinacc``, ...), the simulation time
 (``clock``) or a history (``delay``, ``interval``), and those not implemented yet (``rangefinder``,
-``subtreeangmom``, limit and energy sensors, ...; :data:`WHY`), are kept in the layout but not computed: one
+``subtreeangmom``, energy sensors, ...; :data:`WHY`), are kept in the layout but not computed: one
 warning names them, their ``sensordata`` slots read NaN and reading one by name raises. ``cutoff`` clamps as in
 MuJoCo; ``noise`` is ignored, as MuJoCo's engine ignores it (the model only stores it).
 """
