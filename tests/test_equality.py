@@ -1,6 +1,6 @@
 """Equality constraints (``<equality><tendon>`` and ``<joint>``) against MuJoCo 4.0: the constraint's residual, rate,
 Jacobian, gains, impedance and inverse inertia; two pendulums held together by a tendon; ``polycoef``; ``active``;
-refused types."""
+``<weld>``/``<connect>`` kept apart (``torchsim.welds``)."""
 
 import mujoco
 import numpy as np
@@ -166,12 +166,9 @@ def test_inactive_constraint_does_nothing():
     np.testing.assert_allclose(mujoco_rollout(inactive, 0.04, start), mujoco_rollout(model(""), 0.04, start))
 
 
-@pytest.mark.parametrize("eq, match", [
-    ('<connect name="pin" body1="b" anchor="0 0 0"/>', "'pin'.*<connect>"),
-    ('<weld name="glue" body1="b" active="false"/>', "'glue'.*<weld>"),
-])
-def test_unsupported_equality_is_named(eq, match):
-    xml = model(eq).replace('<body pos="2 0 1">', '<body name="b" pos="2 0 1">')
-    mujoco.MjModel.from_xml_string(xml)  # valid MJCF
-    with pytest.raises(torchsim.UnsupportedMJCFError, match=match):
-        torchsim.load_mjcf(xml)
+def test_weld_and_connect_are_body_constraints():
+    """``<connect>`` and ``<weld>`` load as body constraints (``torchsim.welds``, tests/test_mocap_weld.py), not as
+    dof equalities; an inactive one is dropped."""
+    eq = '<connect body1="b" anchor="0 0 0"/><weld body1="b" active="false"/>'
+    sys = torchsim.load_mjcf(model(eq).replace('<body pos="2 0 1">', '<body name="b" pos="2 0 1">'))
+    assert not sys.eq_constraints and sys.weld_frame.shape == (1, 2) and sys.welds

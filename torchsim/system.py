@@ -53,7 +53,8 @@ class SensorGroup(NamedTuple):
 #: The *batchable* fields of ``System`` and their rank without a batch dimension (contact groups' friction and
 #: margin are batchable too, rank 1).
 BATCHABLE_RANK = {"body_mass": 1, "body_inertia": 3, "dof_damping": 1, "dof_armature": 1, "dof_stiffness": 1,
-                  "dof_springref": 1, "dof_frictionloss": 1, "act_gear": 1, "act_gain": 1, "act_bias": 2}
+                  "dof_springref": 1, "dof_frictionloss": 1, "act_gear": 1, "act_gain": 1, "act_bias": 2,
+                  "mocap_pos": 2, "mocap_quat": 2}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -125,6 +126,22 @@ class System:
         without a second side).  eq_solimp: (E, 5).  eq_gains: (E, 2) ``K`` [1/s^2], ``B`` [1/s] from ``solref``.
         eq_invweight: (E,) MuJoCo's inverse inertia of the constraint at ``qpos0``.
         eq_constraints: whether there are any (static structure: a model without them skips their work).
+    Weld and connect constraints (``W`` active MuJoCo ``<equality><weld>``/``<connect>``, ``torchsim.welds``; a
+    connect is a weld without rotation rows). Each has two sides, MuJoCo's ``body1``/``site1`` and ``body2``/``site2``:
+        weld_frame: (W, 2) the frame each side moves with: an ext body index (the world is ``N``), or ``N + 1 + k``
+        for mocap body ``k``.  weld_body: (W, 2) the ext body each side's force acts on (``N`` for the world and
+        mocap bodies: none).  weld_anchor: (W, 2, 3) each side's point in its frame, from the frame's origin (a
+        moving body's COM) [m].  weld_quat: (W, 2, 4) each side's orientation in its frame (MuJoCo's body or site
+        frame; side 1's times ``relpose``).  weld_torquescale: (W,) MuJoCo's ``torquescale``, 0 for a connect.
+        weld_solimp: (W, 5).  weld_gains: (W, 2) ``K`` [1/s^2], ``B`` [1/s] from ``solref``.  weld_invweight: (W, 2, 2)
+        each side's ``body_invweight0`` (translation [1/kg], rotation [1/(kg m^2)]; 0 for the world and mocap
+        bodies), whose sums are MuJoCo's approximate inverse inertia of the rows at ``qpos0``.
+        welds: whether there are any (static structure).
+    Mocap bodies (``M``, kinematic, MuJoCo's ``mocap_pos``/``mocap_quat``; only weld and connect constraints read them,
+    ``torchsim.io_mjcf.bodies``):
+        mocap_pos: (M, 3) [m], mocap_quat: (M, 4) each mocap body's frame in the world, batchable: the model pose at
+        load; per-env targets are ``sys.replace(mocap_pos=(B, M, 3), mocap_quat=(B, M, 4))``, inputs of the step
+        like every per-env parameter (a step kernel takes them as inputs: setting them every step rebuilds nothing).
     Geometry and contacts:
         geom_body: (G,) ext body index.  geom_pos, geom_quat: (G, 3), (G, 4) from the body COM in the body frame
         (world frame for static geoms).  geom_size: (G, 3) MuJoCo sizes.  contact_groups: one per shape pair.
@@ -268,6 +285,18 @@ class System:
     eq_gains: torch.Tensor
     eq_invweight: torch.Tensor
     eq_constraints: bool
+    # weld and connect constraints, mocap bodies
+    weld_frame: torch.Tensor
+    weld_body: torch.Tensor
+    weld_anchor: torch.Tensor
+    weld_quat: torch.Tensor
+    weld_torquescale: torch.Tensor
+    weld_solimp: torch.Tensor
+    weld_gains: torch.Tensor
+    weld_invweight: torch.Tensor
+    welds: bool
+    mocap_pos: torch.Tensor
+    mocap_quat: torch.Tensor
     # geometry
     geom_body: torch.Tensor
     geom_pos: torch.Tensor

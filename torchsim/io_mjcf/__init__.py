@@ -17,8 +17,14 @@ is harmless):
 - tendons: ``<fixed>`` over hinges and slides, with ``stiffness``, ``springlength``, ``damping``,
   ``limited``/``range`` (soft, ``solreflimit``/``solimplimit``), and actuators with tendon transmission.
 - equality constraints: ``<tendon>`` (fixed tendons) and ``<joint>`` (hinges, slides) with ``polycoef``, ``solref``,
-  ``solimp``, as soft constraint forces (``torchsim.equality``); inactive ones do nothing; ``connect``, ``weld``
-  and flex constraints are refused.
+  ``solimp``, as soft constraint forces on the dofs (``torchsim.equality``); ``<weld>`` and ``<connect>`` between
+  bodies or sites (either may be the world or a mocap body) with ``solref``, ``solimp``, ``anchor``, ``relpose`` and
+  ``torquescale``, as soft constraint forces on the bodies (``torchsim.welds``); inactive ones do nothing; flex
+  constraints are refused.
+- mocap bodies: kinematic, posed per env by ``System.mocap_pos``/``mocap_quat`` (MuJoCo's ``mocap_pos``/
+  ``mocap_quat``; ``sys.replace(mocap_pos=(B, M, 3))``), which the welds and connects read. Their geoms stay at the
+  model pose and may not collide; bodies attached to them by joints are refused (``torchsim.io_mjcf.bodies``).
+- ``<skin>`` is ignored with a warning (it has no physics).
 - contact geoms: ``plane`` (static), ``sphere``, ``capsule``, ``box``, ``ellipsoid``, ``cylinder`` (against planes,
   spheres and capsules, ellipsoid-ellipsoid and cylinder-cylinder, see ``torchsim.collision_round``;
   ellipsoid-cylinder and either against a box are refused); pairs from ``contype``/``conaffinity``,
@@ -42,7 +48,7 @@ import torch
 
 from torchsim.io_mjcf.actuators import actuator_fields
 from torchsim.io_mjcf.bodies import fuse_bodies
-from torchsim.io_mjcf.equality import equality_fields
+from torchsim.io_mjcf.equality import equality_fields, weld_fields
 from torchsim.io_mjcf.fluid import fluid_fields
 from torchsim.io_mjcf.geoms import geom_fields
 from torchsim.io_mjcf.joints import joint_fields
@@ -108,7 +114,8 @@ def load_mjcf(
     fused, fields = fuse_bodies(m)
     joints, jnt_dof = joint_fields(m, fused)
     fields |= joints | actuator_fields(m, jnt_dof) | geom_fields(m, fused, contact_soft=contact_model == "soft")
-    fields |= tendon_fields(m, jnt_dof) | equality_fields(m, jnt_dof) | fluid_fields(m, fused)
+    fields |= tendon_fields(m, jnt_dof) | equality_fields(m, jnt_dof) | weld_fields(m, fused)
+    fields |= fluid_fields(m, fused)
     fields |= sensor_fields(m, fused, jnt_dof)
     gravity = m.opt.gravity * (0.0 if m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_GRAVITY) else 1.0)
     sys = System(

@@ -1,5 +1,10 @@
 """MuJoCo bodies -> torchsim bodies: each body without joints is fused into its parent (its weld root).
 
+Mocap bodies (MuJoCo ``body_mocapid >= 0``) are kinematic: their pose is the System's ``mocap_pos``/``mocap_quat``,
+set per env, which only the weld and connect constraints read (``torchsim.welds``). They are not moving bodies:
+their geoms and jointless children belong to the static world at the model pose (where a renderer draws them), so a
+mocap geom that can collide, or a body attached to a mocap body by joints, is refused by name.
+
 Frames here are numpy float64, MuJoCo's ``(pos, quat)`` convention.
 """
 
@@ -17,15 +22,18 @@ class FusedBodies(NamedTuple):
 
     Attributes:
         roots: MuJoCo id of each fused body's weld root, in torchsim body order.
-        index: MuJoCo weld root (or 0, the world) -> torchsim ext body index (the world is ``N``).
-        frame: MuJoCo body -> its ``(pos (3,), quat (4,))`` in its weld root's frame (the world's: identity).
+        index: MuJoCo weld root (or 0, the world, or a mocap body) -> torchsim ext body index (the world is ``N``).
+        frame: MuJoCo body -> its ``(pos (3,), quat (4,))`` in its weld root's frame (the world's: identity; a mocap
+            body's: the world's at the model pose, where its geoms stay).
         com: ``(N, 3)`` each fused body's centre of mass in its root's frame [m].
+        mocap: MuJoCo id of each mocap body, in MuJoCo's ``body_mocapid`` order.
     """
 
     roots: list
     index: dict
     frame: dict
     com: np.ndarray
+    mocap: list
 
     def body_of(self, m: mujoco.MjModel, mj_body: int) -> int:
         """The torchsim ext body index that MuJoCo body ``mj_body`` is fused into."""
@@ -33,8 +41,8 @@ class FusedBodies(NamedTuple):
 
     def com_of(self, m: mujoco.MjModel, mj_body: int) -> np.ndarray:
         """The COM of the fused body holding ``mj_body`` in its root's frame (the world's origin for the world)."""
-        weld = m.body_weldid[mj_body]
-        return self.com[self.index[weld]] if weld else np.zeros(3)
+        body = self.index[m.body_weldid[mj_body]]
+        return self.com[body] if body < len(self.roots) else np.zeros(3)
 
 
 def compose(pos_a, quat_a, pos_b, quat_b):
@@ -55,11 +63,13 @@ def fuse_bodies(m: mujoco.MjModel) -> tuple[FusedBodies, dict]:
     mapping, and the System's body fields."""
     identity = (np.zeros(3), np.array([1.0, 0, 0, 0]))
     frame = {0: identity}
-    for b in range(1, m.nbody):
-        frame[b] = identity if m.body_weldid[b] == b else compose(*frame[m.body_parentid[b]], m.body_pos[b],
-                                                                  m.body_quat[b])
-    roots = [b for b in range(1, m.nbody) if m.body_weldid[b] == b]
-    index = {0: len(roots)} | {b: i for i, b in enumerate(roots)}
+    mocap = sorted((b for b in range(1, m.nbody) if m.body_mocapid[b] >= 0), key=lambda b: m.body_mocapid[b])
+    for b in range(1, m.nbody):  # a mocap body's parent is the world: its model pose is its body_pos, body_quat
+        kept = m.body_weldid[b] == b and m.body_mocapid[b] < 0
+        frame[b] = identity if kept else compose(*frame[m.body_parentid[b]], m.body_pos[b], m.body_quat[b])
+    roots = [b for b in range(1, m.nbody) if m.body_weldid[b] == b and m.body_mocapid[b] < 0]
+    index = {0: len(roots)} | {b: len(roots) for b in mocap} | {b: i for i, b in enumerate(roots)}
+    _check_mocap(m, roots)
     mass, com, inertia = np.zeros(len(roots)), np.zeros((len(roots), 3)), np.zeros((len(roots), 3, 3))
     for i, r in enumerate(roots):
         members = [b for b in range(1, m.nbody) if m.body_weldid[b] == r]
@@ -76,12 +86,36 @@ def fuse_bodies(m: mujoco.MjModel) -> tuple[FusedBodies, dict]:
         for mb, c, t in zip(masses, coms, tensors):  # parallel-axis theorem about the fused COM
             d = c - com[i]
             inertia[i] += t + mb * (d @ d * np.eye(3) - np.outer(d, d))
-    fused = FusedBodies(roots, index, frame, com)
+    fused = FusedBodies(roots, index, frame, com, mocap)
     mj_pos = np.array([frame[b][0] - fused.com_of(m, b) for b in range(m.nbody)])
+    mocap_quat = m.body_quat[mocap].reshape(-1, 4)
     return fused, dict(
+        mocap_pos=torch.as_tensor(m.body_pos[mocap].reshape(-1, 3).copy()),
+        mocap_quat=torch.as_tensor(mocap_quat / np.linalg.norm(mocap_quat, axis=-1, keepdims=True)),
         body_mass=torch.as_tensor(mass), body_inertia=torch.as_tensor(inertia), body_ipos=torch.as_tensor(com),
         body_parent=torch.as_tensor([fused.body_of(m, m.body_parentid[r]) for r in roots], dtype=torch.long),
         body_names=tuple(name(m, mujoco.mjtObj.mjOBJ_BODY, r) for r in roots),
         mjbody_body=torch.as_tensor([fused.body_of(m, b) for b in range(m.nbody)], dtype=torch.long),
         mjbody_pos=torch.as_tensor(mj_pos), mjbody_quat=torch.as_tensor(np.array([frame[b][1] for b in range(m.nbody)])),
     )
+
+
+def _check_mocap(m: mujoco.MjModel, roots: list) -> None:
+    """Refuse what a kinematic mocap body would carry wrongly: a geom that can collide (it would stay at the model
+    pose; checked on ``contype``/``conaffinity`` and ``<pair>``, so a geom whose bits match nothing is refused too),
+    and a body attached to a mocap body by joints (its joint would hold it to the model pose)."""
+    paired = set(m.pair_geom1) | set(m.pair_geom2)
+    for g in range(m.ngeom):
+        body = m.body_weldid[m.geom_bodyid[g]]
+        if m.body_mocapid[body] >= 0 and (m.geom_contype[g] or m.geom_conaffinity[g] or g in paired):
+            raise UnsupportedMJCFError(
+                f"geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r} of mocap body "
+                f"{name(m, mujoco.mjtObj.mjOBJ_BODY, body)!r} can collide: torchsim's mocap bodies carry no contacts "
+                "(set its contype and conaffinity to 0)")
+    for b in roots:
+        mocap = m.body_weldid[m.body_parentid[b]]
+        if m.body_mocapid[mocap] >= 0:
+            raise UnsupportedMJCFError(
+                f"body {name(m, mujoco.mjtObj.mjOBJ_BODY, b)!r} is attached to mocap body "
+                f"{name(m, mujoco.mjtObj.mjOBJ_BODY, mocap)!r} by joints: torchsim's mocap bodies carry only rigidly "
+                "attached bodies (weld the body to the mocap body with an <equality><weld> instead)")

@@ -1,25 +1,29 @@
-"""MuJoCo ``<equality>`` -> torchsim equality constraints (``torchsim.equality``): ``<tendon>`` over fixed tendons
-and ``<joint>`` over hinge and slide joints, with ``polycoef``, ``solref`` and ``solimp``.
+"""MuJoCo ``<equality>`` -> torchsim equality constraints: ``<tendon>`` over fixed tendons and ``<joint>`` over hinge
+and slide joints, with ``polycoef``, ``solref`` and ``solimp`` (``torchsim.equality``); ``<weld>`` and ``<connect>``
+between bodies or sites, with ``solref``, ``solimp``, ``anchor``, ``relpose`` and ``torquescale`` as MuJoCo compiles
+them into ``eq_data`` (``torchsim.welds``).
 
 Only the constraints active at load (``active``, MuJoCo's ``eq_active0``) are kept: torchsim has no runtime switch
-(MuJoCo's ``eq_active``), so an inactive one does nothing. ``connect``, ``weld`` and flex constraints are refused
-naming the constraint and its type, active or not. ``System`` documents the fields.
+(MuJoCo's ``eq_active``), so an inactive one does nothing. Flex constraints are refused naming the constraint,
+active or not. ``System`` documents the fields.
 """
 
 import mujoco
 import numpy as np
 import torch
 
+from torchsim.io_mjcf.bodies import FusedBodies, compose
 from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
 from torchsim.io_mjcf.tendons import solref_gains, wrap_columns
+
+_WELD, _CONNECT = int(mujoco.mjtEq.mjEQ_WELD), int(mujoco.mjtEq.mjEQ_CONNECT)
 
 
 def equality_fields(m: mujoco.MjModel, jnt_dof: dict) -> dict:
     """The System's ``eq_*`` fields; ``jnt_dof``: MuJoCo joint id -> torchsim dof."""
     for e in range(m.neq):
         _check(m, e, jnt_dof)
-    disabled = m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_EQUALITY | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
-    kept = [] if disabled else [e for e in range(m.neq) if m.eq_active0[e]]
+    kept = [e for e in _active(m) if m.eq_type[e] not in (_WELD, _CONNECT)]
     n = len(kept)
     wraps, ref, invweight = [], np.zeros((n, 2)), np.zeros(n)  # wraps: (side row, dof, coef)
     for i, e in enumerate(kept):
@@ -45,12 +49,73 @@ def equality_fields(m: mujoco.MjModel, jnt_dof: dict) -> dict:
     )
 
 
+def weld_fields(m: mujoco.MjModel, fused: FusedBodies) -> dict:
+    """The System's ``weld_*`` fields: the active ``<weld>`` and ``<connect>`` constraints (``torchsim.welds``).
+
+    Each side's point and orientation are put in the frame it moves with: its fused body's (from the COM), a mocap
+    body's, or the world's. MuJoCo's ``eq_data`` holds, for a connect, the anchors on body 1 (``[0:3]``) and body 2
+    (``[3:6]``); for a weld, the anchor on body 2 (``[0:3]``), the matching point on body 1 (``[3:6]``), ``relpose``'s
+    quaternion (``[6:10]``) and ``torquescale`` (``[10]``); with sites, the sites' frames replace them (``relpose``
+    unused)."""
+    kept = [e for e in _active(m) if m.eq_type[e] in (_WELD, _CONNECT) and not _static(m, e)]
+    n, world = len(kept), len(fused.roots)
+    mocap_frame = {b: world + 1 + k for k, b in enumerate(fused.mocap)}
+    frame, body, anchor, quat = np.zeros((n, 2), int), np.zeros((n, 2), int), np.zeros((n, 2, 3)), np.zeros((n, 2, 4))
+    torquescale, invweight = np.zeros(n), np.zeros((n, 2, 2))
+    for i, e in enumerate(kept):
+        data, weld = m.eq_data[e], m.eq_type[e] == _WELD
+        sites = m.eq_objtype[e] == int(mujoco.mjtObj.mjOBJ_SITE)
+        for side, obj in enumerate((m.eq_obj1id[e], m.eq_obj2id[e])):
+            mj_body = m.site_bodyid[obj] if sites else obj
+            if sites:
+                local = (m.site_pos[obj], m.site_quat[obj])
+            else:  # a weld's first anchor is body 1's point, [3:6]
+                local = (data[3 * (1 - side):3 * (2 - side)] if weld else data[3 * side:3 * side + 3],
+                         data[6:10] if weld and side == 0 else np.array([1.0, 0, 0, 0]))
+            root = m.body_weldid[mj_body]
+            pos, q = compose(*fused.frame[mj_body], *local)  # in the root's frame (the world's for a mocap body)
+            if root in mocap_frame:  # to the mocap body's own frame, which moves with mocap_pos and mocap_quat
+                root_pos, root_quat = fused.frame[root]
+                inverse = np.zeros(4)
+                mujoco.mju_negQuat(inverse, root_quat)
+                pos, q = compose(np.zeros(3), inverse, pos - root_pos, q)
+            frame[i, side] = mocap_frame.get(root, fused.body_of(m, mj_body))
+            body[i, side] = fused.body_of(m, mj_body)
+            anchor[i, side] = pos - fused.com_of(m, mj_body)
+            quat[i, side] = q / np.linalg.norm(q)
+            invweight[i, side] = m.body_invweight0[mj_body]
+        torquescale[i] = data[10] if weld else 0.0
+    solref, solimp = m.eq_solref[kept].reshape(n, 2), m.eq_solimp[kept].reshape(n, 5).copy()
+    return dict(
+        weld_frame=torch.as_tensor(frame), weld_body=torch.as_tensor(body), weld_anchor=torch.as_tensor(anchor),
+        weld_quat=torch.as_tensor(quat), weld_torquescale=torch.as_tensor(torquescale),
+        weld_solimp=torch.as_tensor(solimp), weld_gains=torch.as_tensor(solref_gains(m, solref, solimp)),
+        weld_invweight=torch.as_tensor(invweight), welds=n > 0,
+    )
+
+
+def _static(m: mujoco.MjModel, e: int) -> bool:
+    """Whether both sides of weld or connect ``e`` are the world or mocap bodies: it moves nothing (MuJoCo drops it,
+    its Jacobian being empty)."""
+    bodies = [m.eq_obj1id[e], m.eq_obj2id[e]]
+    if m.eq_objtype[e] == int(mujoco.mjtObj.mjOBJ_SITE):
+        bodies = [m.site_bodyid[b] for b in bodies]
+    return all(m.body_weldid[b] == 0 or m.body_mocapid[m.body_weldid[b]] >= 0 for b in bodies)
+
+
+def _active(m: mujoco.MjModel) -> list:
+    """The equality constraints active at load (none where the model disables equality constraints)."""
+    disabled = m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_EQUALITY | mujoco.mjtDisableBit.mjDSBL_CONSTRAINT)
+    return [] if disabled else [e for e in range(m.neq) if m.eq_active0[e]]
+
+
 def _check(m: mujoco.MjModel, e: int, jnt_dof: dict) -> None:
     kind = mujoco.mjtEq(m.eq_type[e]).name.removeprefix("mjEQ_").lower()
     constraint = name(m, mujoco.mjtObj.mjOBJ_EQUALITY, e)
-    if kind not in ("tendon", "joint"):
+    if kind not in ("tendon", "joint", "weld", "connect"):
         raise UnsupportedMJCFError(f"equality constraint {constraint!r}: <{kind}> equality constraints are not "
-                                   "supported (only <tendon> over fixed tendons and <joint> over hinges and slides)")
+                                   "supported (only <tendon> over fixed tendons, <joint> over hinges and slides, "
+                                   "<weld> and <connect>)")
     for obj in (m.eq_obj1id[e], m.eq_obj2id[e]):
         if kind == "joint" and obj >= 0 and obj not in jnt_dof:
             joint = name(m, mujoco.mjtObj.mjOBJ_JOINT, obj)

@@ -18,7 +18,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import hinge_anchors, integrator, joint_space, spatial, rigid, soft_contacts
+from torchsim import hinge_anchors, integrator, joint_space, spatial, rigid, soft_contacts, welds
 from torchsim.actuators import dof_forces
 from torchsim.collision import contacts
 from torchsim.fluid import fluid_wrench
@@ -216,6 +216,9 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     if sys.fluid:
         fluid_force, fluid_torque = fluid_wrench(sys, bodies, inv.rot)
         force, torque = force + fluid_force, torque + fluid_torque
+    if sys.welds:
+        weld_force, weld_torque = welds.wrench(sys, bodies, inv, force + spring_force, torque + spring_torque)
+        force, torque = force + weld_force, torque + weld_torque
     after = integrator.velocity_update(sys, bodies, inv, force + spring_force, torque + spring_torque, h)
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h, q)
     if sys.contact_groups:
