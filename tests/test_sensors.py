@@ -33,7 +33,8 @@ MODEL = """
         <joint name="shoulder" type="hinge" axis="0 1 0" ref="0.3" range="-1 1" margin="0.4"/>
         <geom type="capsule" fromto="0 0 0 .3 0 0" size=".03" contype="0" conaffinity="0"/>
         <body name="hand" pos=".3 0 0" quat="0.9 0 0.2 0.1">
-          <geom name="hand_geom" type="box" size=".05 .04 .03" pos=".02 .01 0" quat="1 0 .3 0" contype="0" conaffinity="0"/>
+          <geom name="hand_geom" type="box" size=".05 .04 .03" pos=".02 .01 0" quat="1 0 .3 0" contype="0"
+                conaffinity="0"/>
           <site name="fingertip" pos=".05 0 .01" quat="0.7 0 0.7 0.1"/>
         </body>
       </body>
@@ -108,6 +109,10 @@ MODEL = """
     <subtreecom name="world_subtree" body="world"/>
     <subtreelinvel name="torso_subtree_vel" body="torso"/>
     <subtreelinvel name="arm_subtree_vel" body="arm"/>
+    <subtreeangmom name="torso_angmom" body="torso"/>
+    <subtreeangmom name="arm_angmom" body="arm"/>
+    <subtreeangmom name="hand_angmom" body="hand"/>
+    <subtreeangmom name="world_angmom" body="world"/>
     <gyro name="imu_gyro" site="imu"/>
     <gyro name="tip_gyro" site="fingertip"/>
     <velocimeter name="tip_velocimeter" site="fingertip"/>
@@ -123,8 +128,9 @@ MODEL = """
 #: Every type torchsim computes; the model has at least one sensor of each.
 COMPUTED = ("jointpos", "jointvel", "ballquat", "ballangvel", "tendonpos", "tendonvel", "actuatorpos", "actuatorvel",
             "actuatorfrc", "jointactuatorfrc", "tendonactuatorfrc", "framepos", "framequat", "framexaxis",
-            "frameyaxis", "framezaxis", "framelinvel", "frameangvel", "subtreecom", "subtreelinvel", "gyro",
-            "velocimeter", "magnetometer", "jointlimitpos", "jointlimitvel", "tendonlimitpos", "tendonlimitvel")
+            "frameyaxis", "framezaxis", "framelinvel", "frameangvel", "subtreecom", "subtreelinvel", "subtreeangmom",
+            "gyro", "velocimeter", "magnetometer", "jointlimitpos", "jointlimitvel", "tendonlimitpos",
+            "tendonlimitvel")
 NOT_COMPUTED = {"imu_acc": "accelerometer", "tip_touch": "touch", "time": "clock", "late": "jointpos.*delay"}
 ENVS = 4
 #: The shoulder and slide coordinates of the 4 envs: within the margin of the shoulder's lower and upper limits
@@ -192,9 +198,10 @@ def test_cutoff_clamps_real_values(random_states):
 
 def test_actuator_sensors_without_tendons():
     """Actuator sensors of a model without tendons (most models): a geared motor and a limited servo on hinges."""
-    xml = """<mujoco><worldbody><body><joint name="a" axis="0 1 0"/><geom type="capsule" size=".1" fromto="0 0 0 .3 0 0"/>
-      <body pos=".3 0 0"><joint name="b" axis="1 0 0" ref=".2"/><geom type="capsule" size=".05" fromto="0 0 0 .2 0 0"/></body>
-      </body></worldbody>
+    xml = """<mujoco><worldbody><body><joint name="a" axis="0 1 0"/>
+      <geom type="capsule" size=".1" fromto="0 0 0 .3 0 0"/>
+      <body pos=".3 0 0"><joint name="b" axis="1 0 0" ref=".2"/><geom type="capsule" size=".05" fromto="0 0 0 .2 0 0"/>
+      </body></body></worldbody>
       <actuator><motor name="m" joint="a" gear="3"/><position name="p" joint="b" kp="20" forcerange="-1 1"/></actuator>
       <sensor><actuatorpos actuator="p"/><actuatorvel actuator="m"/><actuatorfrc actuator="m"/>
         <actuatorfrc actuator="p"/><jointactuatorfrc joint="a"/><jointactuatorfrc joint="b"/></sensor></mujoco>"""

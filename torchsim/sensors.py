@@ -105,13 +105,29 @@ def _frame_values(sys: System, frames: _Frames, group: SensorGroup) -> torch.Ten
 
 
 def _subtree_values(sys: System, frames: _Frames, group: SensorGroup) -> torch.Tensor:
-    """``subtreecom`` / ``subtreelinvel`` ``(3, S, B)``: the mass-weighted mean of the subtree's terms' positions
-    or velocities (``System.sensor_subtree_*``)."""
-    pos, _, vel, _ = frames.at(sys.sensor_subtree_frame)
-    weighted = (pos if group.kind == "subtreecom" else vel) * lanes.param(sys.sensor_subtree_weight, 1)
-    terms = sys.sensor_subtree_row.shape[0]  # as many rows as terms at most: a static shape, no device read
-    mean = weighted.new_zeros(3, terms, weighted.shape[-1]).index_add(-2, sys.sensor_subtree_row, weighted)
-    return mean.index_select(-2, group.obj)
+    """``subtreecom``, ``subtreelinvel`` or ``subtreeangmom`` ``(3, S, B)`` from the subtree's terms (``System.
+    sensor_subtree_*``): their mass-weighted mean position or velocity; or the angular momentum about the subtree's
+    COM, each term's spin ``R I R^T w`` plus its mass times its offset from the COM crossed with its velocity
+    relative to the COM's."""
+    pos, quat, vel, ang = frames.at(sys.sensor_subtree_frame)
+    row = sys.sensor_subtree_row
+    mass = lanes.param(sys.sensor_subtree_mass, 1)
+    rows = row.shape[0]  # as many rows as terms at most: a static shape, no device read
+
+    def per_row(x):  # (3, K, B) -> (3, rows, B)
+        return x.new_zeros(3, rows, x.shape[-1]).index_add(-2, row, x)
+
+    total = mass.new_zeros(rows, 1).index_add(0, row, mass).clamp_min(1e-30)  # rows beyond the last: no terms
+    com = per_row(mass * pos) / total
+    if group.kind == "subtreecom":
+        return com.index_select(-2, group.obj)
+    com_vel = per_row(mass * vel) / total
+    if group.kind == "subtreelinvel":
+        return com_vel.index_select(-2, group.obj)
+    inertia = lanes.param(sys.sensor_subtree_inertia, 1, 1)  # principal moments, along the frame's axes
+    spin = spatial.quat_rotate(quat, inertia * spatial.quat_rotate_inv(quat, ang))
+    orbit = mass * spatial.cross(pos - com.index_select(-2, row), vel - com_vel.index_select(-2, row))
+    return per_row(spin + orbit).index_select(-2, group.obj)
 
 
 def actuator_forces(sys: System, q: torch.Tensor, qd: torch.Tensor, ctrl: torch.Tensor) -> torch.Tensor:
@@ -178,7 +194,7 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
         elif kind in ("tendonlimitpos", "tendonlimitvel"):
             values = _limit_values(kind == "tendonlimitpos", tendons.lengths(sys, q_dof), tendons.lengths(sys, qd_dof),
                                    sys.ten_range, sys.ten_margin, sys.ten_limited).index_select(0, group.obj)[None]
-        elif kind in ("subtreecom", "subtreelinvel"):
+        elif kind in SUBTREE_KINDS:
             values = _subtree_values(sys, frames, group)
         else:
             values = _frame_values(sys, frames, group)

@@ -40,7 +40,7 @@ class SensorGroup(NamedTuple):
         obj: (S,) what each reads, by kind: a qpos address (``jointpos``, ``ballquat``), a qvel address
             (``jointvel``, ``ballangvel``), a tendon, an actuator, a dof (``jointactuatorfrc``), a sensor frame
             (frame sensors, ``gyro``, ``velocimeter``, ``magnetometer``) or a subtree row (``subtreecom``,
-            ``subtreelinvel``).
+            ``subtreelinvel``, ``subtreeangmom``).
         ref: (S,) the sensor frame of a frame sensor's reference (0, the world, where it has none); -1 for others.
     """
 
@@ -168,11 +168,11 @@ class System:
         (ints).  sensor_skipped: why each is not computed, ``""`` where it is.  sensor_groups: one
         :class:`SensorGroup` per computed type.  sensor_frame_body: (F,) ext body of each frame sensors read;
         sensor_frame_pos: (F, 3) its origin from the body COM, body frame [m]; sensor_frame_quat: (F, 4) its
-        orientation in the body frame; frame 0 is the world.  Subtrees as ``K`` terms, each the subtree's
-        members on one fused body at their COM (a frame): sensor_subtree_row, sensor_subtree_frame (K,),
-        sensor_subtree_weight (K,) their share of the subtree's mass.  sensor_magnetic: (3,) MuJoCo's ``magnetic``
-        field, world frame.  sensor_cutoff: (nsensordata,) MuJoCo's ``cutoff`` clamping each real-valued slot to
-        ``[-cutoff, cutoff]`` (inf where none).
+        orientation in the body frame; frame 0 is the world.  Subtrees as ``K`` terms, one per MuJoCo body with
+        mass in the subtree: sensor_subtree_row, sensor_subtree_frame (K,) (the body's inertial frame: its COM and
+        principal axes), sensor_subtree_mass (K,) [kg], sensor_subtree_inertia (K, 3) principal moments [kg m^2].
+        sensor_magnetic: (3,) MuJoCo's ``magnetic`` field, world frame.  sensor_cutoff: (nsensordata,) MuJoCo's
+        ``cutoff`` clamping each real-valued slot to ``[-cutoff, cutoff]`` (inf where none).
     MuJoCo bodies (for poses of fused bodies, e.g. rendering): mjbody_body (nbody,) ext index;
         mjbody_pos, mjbody_quat: frame offset of each MuJoCo body in its fused body's frame.
     """
@@ -334,7 +334,8 @@ class System:
     sensor_frame_quat: torch.Tensor
     sensor_subtree_row: torch.Tensor
     sensor_subtree_frame: torch.Tensor
-    sensor_subtree_weight: torch.Tensor
+    sensor_subtree_mass: torch.Tensor
+    sensor_subtree_inertia: torch.Tensor
     sensor_magnetic: torch.Tensor
     sensor_cutoff: torch.Tensor
     # MuJoCo body frames

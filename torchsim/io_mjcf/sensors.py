@@ -2,11 +2,11 @@
 MuJoCo's ``sensordata``, grouped by type for ``torchsim.sensors``.
 
 Sensors read the State: joint, tendon and actuator positions and velocities, frame poses and velocities of bodies,
-geoms, sites and (fixed) cameras, subtree centres of mass and their velocities, gyros, velocimeters and
-magnetometers, joint and tendon limits, and, given the controls, actuator forces. Sensors that need accelerations or contact and constraint
-forces (``accelerometer``, ``touch``, ``force``, ``torque``, ``framelinacc``, ...), the simulation time
-(``clock``) or a history (``delay``, ``interval``), and those not implemented yet (``rangefinder``,
-``subtreeangmom``, energy sensors, ...; :data:`WHY`), are kept in the layout but not computed: one
+geoms, sites and (fixed) cameras, subtree centres of mass, their velocities and angular momenta, gyros,
+velocimeters and magnetometers, joint and tendon limits, and, given the controls, actuator forces. Sensors that
+need accelerations or contact and constraint forces (``accelerometer``, ``touch``, ``force``, ``torque``,
+``framelinacc``, ...), the simulation time (``clock``) or a history (``delay``, ``interval``), and those not
+implemented yet (``rangefinder``, energy sensors, ...; :data:`WHY`), are kept in the layout but not computed: one
 warning names them, their ``sensordata`` slots read NaN and reading one by name raises. ``cutoff`` clamps as in
 MuJoCo; ``noise`` is ignored, as MuJoCo's engine ignores it (the model only stores it).
 """
@@ -36,7 +36,8 @@ KIND = {int(t): n for t, n in {
     Sens.mjSENS_FRAMEQUAT: "framequat", Sens.mjSENS_FRAMEXAXIS: "framexaxis", Sens.mjSENS_FRAMEYAXIS: "frameyaxis",
     Sens.mjSENS_FRAMEZAXIS: "framezaxis", Sens.mjSENS_FRAMELINVEL: "framelinvel",
     Sens.mjSENS_FRAMEANGVEL: "frameangvel", Sens.mjSENS_SUBTREECOM: "subtreecom",
-    Sens.mjSENS_SUBTREELINVEL: "subtreelinvel", Sens.mjSENS_GYRO: "gyro", Sens.mjSENS_VELOCIMETER: "velocimeter",
+    Sens.mjSENS_SUBTREELINVEL: "subtreelinvel", Sens.mjSENS_SUBTREEANGMOM: "subtreeangmom",
+    Sens.mjSENS_GYRO: "gyro", Sens.mjSENS_VELOCIMETER: "velocimeter",
     Sens.mjSENS_MAGNETOMETER: "magnetometer", Sens.mjSENS_JOINTLIMITPOS: "jointlimitpos",
     Sens.mjSENS_JOINTLIMITVEL: "jointlimitvel", Sens.mjSENS_TENDONLIMITPOS: "tendonlimitpos",
     Sens.mjSENS_TENDONLIMITVEL: "tendonlimitvel",
@@ -48,7 +49,7 @@ DOF_KINDS = ("jointactuatorfrc", "jointlimitpos", "jointlimitvel")
 ACTUATOR_KINDS = ("actuatorpos", "actuatorvel", "actuatorfrc")
 FRAME_KINDS = ("framepos", "framequat", "framexaxis", "frameyaxis", "framezaxis", "framelinvel", "frameangvel",
                "gyro", "velocimeter", "magnetometer")
-SUBTREE_KINDS = ("subtreecom", "subtreelinvel")
+SUBTREE_KINDS = ("subtreecom", "subtreelinvel", "subtreeangmom")
 LIMIT_KINDS = ("jointlimitpos", "jointlimitvel", "tendonlimitpos", "tendonlimitvel")
 #: The MjModel field prefix of each object type frame sensors read besides bodies.
 PREFIX = {int(Obj.mjOBJ_GEOM): "geom", int(Obj.mjOBJ_SITE): "site", int(Obj.mjOBJ_CAMERA): "cam"}
@@ -61,7 +62,7 @@ WHY = {int(t): why for t, why in {
     Sens.mjSENS_FRAMEANGACC: _ACCELERATIONS, Sens.mjSENS_TOUCH: _FORCES, Sens.mjSENS_FORCE: _FORCES,
     Sens.mjSENS_TORQUE: _FORCES, Sens.mjSENS_CONTACT: _FORCES, Sens.mjSENS_TACTILE: _FORCES,
     Sens.mjSENS_JOINTLIMITFRC: _FORCES, Sens.mjSENS_TENDONLIMITFRC: _FORCES,
-    Sens.mjSENS_SUBTREEANGMOM: _NOT_YET, Sens.mjSENS_E_POTENTIAL: _NOT_YET,
+ Sens.mjSENS_E_POTENTIAL: _NOT_YET,
     Sens.mjSENS_E_KINETIC: _NOT_YET, Sens.mjSENS_CAMPROJECTION: _NOT_YET, Sens.mjSENS_INSIDESITE: _NOT_YET,
     Sens.mjSENS_GEOMDIST: _NOT_YET, Sens.mjSENS_GEOMNORMAL: _NOT_YET, Sens.mjSENS_GEOMFROMTO: _NOT_YET,
     Sens.mjSENS_RANGEFINDER: "it is not implemented yet (ray casts against the geoms)",
@@ -133,7 +134,8 @@ def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
         sensor_frame_pos=torch.as_tensor(np.array(pos)), sensor_frame_quat=torch.as_tensor(np.array(quat)),
         sensor_subtree_row=torch.as_tensor(np.array([t.row for t in terms], dtype=np.int64)),
         sensor_subtree_frame=torch.as_tensor(np.array([t.frame for t in terms], dtype=np.int64)),
-        sensor_subtree_weight=torch.as_tensor(np.array([t.weight for t in terms], dtype=float)),
+        sensor_subtree_mass=torch.as_tensor(np.array([t.mass for t in terms], dtype=float)),
+        sensor_subtree_inertia=torch.as_tensor(np.array([t.inertia for t in terms], dtype=float).reshape(-1, 3)),
         sensor_magnetic=torch.as_tensor(m.opt.magnetic.copy()), sensor_cutoff=torch.as_tensor(cutoff),
     )
 
@@ -214,25 +216,12 @@ def _subtree_mass(m: mujoco.MjModel, root: int) -> float:
 class _Term(NamedTuple):
     row: int
     frame: int
-    weight: float
+    mass: float
+    inertia: np.ndarray
 
 
 def _subtree_terms(m: mujoco.MjModel, fused: FusedBodies, frames: _FrameTable, subtrees: dict) -> list:
-    """Each subtree row as terms ``(row, frame, weight)``: the members it holds of each fused body, at their
-    centre of mass (a frame), weighted by their share of the subtree's mass; the subtree's COM is the terms'
-    weighted sum."""
-    terms = []
-    for root, row in subtrees.items():
-        members = defaultdict(list)
-        for b in _subtree_bodies(m, root):
-            members[fused.body_of(m, b)].append(b)
-        total = _subtree_mass(m, root)
-        for body, group in members.items():
-            mass = m.body_mass[group]
-            if mass.sum() == 0:
-                continue
-            coms = [compose(*fused.frame[b], m.body_ipos[b], m.body_iquat[b])[0] for b in group]
-            com = (mass[:, None] * np.array(coms)).sum(0) / mass.sum() - fused.com_of(m, group[0])
-            frame = frames.add(("subtree", root, body), body, com, np.array([1.0, 0, 0, 0]))
-            terms.append(_Term(row, frame, float(mass.sum() / total)))
-    return terms
+    """Each subtree row as terms ``(row, frame, mass, inertia)``: one per MuJoCo body of the subtree with mass, at
+    its inertial frame (its COM and principal axes), with its principal moments of inertia."""
+    return [_Term(row, _frame(m, fused, frames, Obj.mjOBJ_BODY, b), float(m.body_mass[b]), m.body_inertia[b])
+            for root, row in subtrees.items() for b in _subtree_bodies(m, root) if m.body_mass[b] > 0]
