@@ -237,9 +237,20 @@ def test_unsupported_mocap_uses_are_refused_by_name(xml, match):
         torchsim.load_mjcf(xml)
 
 
-def test_weld_between_static_sides_is_dropped():
-    """A weld between a mocap body and the world moves nothing (MuJoCo's Jacobian is empty): it is not kept."""
-    sys = torchsim.load_mjcf(FOLLOW.replace('body2="ball"', ''))
+@pytest.mark.parametrize("eq", [
+    '<weld body1="target"/>',  # a mocap body and the world
+    '<connect body1="ball" body2="stuck" anchor="0 0 0"/>',  # two bodies of one rigid body
+])
+def test_constraint_that_moves_nothing_is_dropped(eq):
+    """MuJoCo drops a weld or connect whose Jacobian is empty; so does torchsim (a constraint inside one rigid body
+    would otherwise twist it)."""
+    xml = FOLLOW.replace('mass="0.5"/>', 'mass="0.5"/><body name="stuck" pos="0.1 0 0"><geom size=".01"/></body>')
+    xml = xml.replace('<weld body1="target" body2="ball" solimp="0.9 0.95 0.001" solref="0.02 1"/>', eq)
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    assert m.neq == 1 and d.ne == 0
+    sys = torchsim.load_mjcf(xml)
     assert not sys.welds and sys.weld_frame.shape == (0, 2)
 
 

@@ -141,7 +141,8 @@ class System:
     ``torchsim.io_mjcf.bodies``):
         mocap_pos: (M, 3) [m], mocap_quat: (M, 4) each mocap body's frame in the world, batchable: the model pose at
         load; per-env targets are ``sys.replace(mocap_pos=(B, M, 3), mocap_quat=(B, M, 4))``, inputs of the step
-        like every per-env parameter (a step kernel takes them as inputs: setting them every step rebuilds nothing).
+        like every per-env parameter (a step kernel takes them as inputs: setting them every step rebuilds nothing;
+        a shared ``(M, 3)`` value is built into the kernel, so set targets per env even where they agree).
     Geometry and contacts:
         geom_body: (G,) ext body index.  geom_pos, geom_quat: (G, 3), (G, 4) from the body COM in the body frame
         (world frame for static geoms).  geom_size: (G, 3) MuJoCo sizes.  contact_groups: one per shape pair.

@@ -57,7 +57,7 @@ def weld_fields(m: mujoco.MjModel, fused: FusedBodies) -> dict:
     (``[3:6]``); for a weld, the anchor on body 2 (``[0:3]``), the matching point on body 1 (``[3:6]``), ``relpose``'s
     quaternion (``[6:10]``) and ``torquescale`` (``[10]``); with sites, the sites' frames replace them (``relpose``
     unused)."""
-    kept = [e for e in _active(m) if m.eq_type[e] in (_WELD, _CONNECT) and not _static(m, e)]
+    kept = [e for e in _active(m) if m.eq_type[e] in (_WELD, _CONNECT) and not _idle(m, e)]
     n, world = len(kept), len(fused.roots)
     mocap_frame = {b: world + 1 + k for k, b in enumerate(fused.mocap)}
     frame, body, anchor, quat = np.zeros((n, 2), int), np.zeros((n, 2), int), np.zeros((n, 2, 3)), np.zeros((n, 2, 4))
@@ -94,13 +94,14 @@ def weld_fields(m: mujoco.MjModel, fused: FusedBodies) -> dict:
     )
 
 
-def _static(m: mujoco.MjModel, e: int) -> bool:
-    """Whether both sides of weld or connect ``e`` are the world or mocap bodies: it moves nothing (MuJoCo drops it,
-    its Jacobian being empty)."""
+def _idle(m: mujoco.MjModel, e: int) -> bool:
+    """Whether weld or connect ``e`` moves nothing: both sides on one rigid body (one weld root), or each on the
+    world or a mocap body. MuJoCo drops such a constraint (its Jacobian is empty)."""
     bodies = [m.eq_obj1id[e], m.eq_obj2id[e]]
     if m.eq_objtype[e] == int(mujoco.mjtObj.mjOBJ_SITE):
         bodies = [m.site_bodyid[b] for b in bodies]
-    return all(m.body_weldid[b] == 0 or m.body_mocapid[m.body_weldid[b]] >= 0 for b in bodies)
+    roots = [m.body_weldid[b] for b in bodies]
+    return roots[0] == roots[1] or all(r == 0 or m.body_mocapid[r] >= 0 for r in roots)
 
 
 def _active(m: mujoco.MjModel) -> list:
