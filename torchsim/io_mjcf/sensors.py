@@ -42,11 +42,10 @@ KIND = {int(t): n for t, n in {
     Sens.mjSENS_JOINTLIMITVEL: "jointlimitvel", Sens.mjSENS_TENDONLIMITPOS: "tendonlimitpos",
     Sens.mjSENS_TENDONLIMITVEL: "tendonlimitvel",
 }.items()}
-#: The computed kinds by what their group's ``obj`` indexes (``System.sensor_groups``).
+#: The computed kinds by what their group's ``obj`` indexes (``System.sensor_groups``); the other computed kinds
+#: (tendon and actuator sensors) index tendons and actuators, whose order is MuJoCo's.
 QPOS_KINDS, QVEL_KINDS = ("jointpos", "ballquat"), ("jointvel", "ballangvel")
-TENDON_KINDS = ("tendonpos", "tendonvel", "tendonactuatorfrc", "tendonlimitpos", "tendonlimitvel")
 DOF_KINDS = ("jointactuatorfrc", "jointlimitpos", "jointlimitvel")
-ACTUATOR_KINDS = ("actuatorpos", "actuatorvel", "actuatorfrc")
 FRAME_KINDS = ("framepos", "framequat", "framexaxis", "frameyaxis", "framezaxis", "framelinvel", "frameangvel",
                "gyro", "velocimeter", "magnetometer")
 SUBTREE_KINDS = ("subtreecom", "subtreelinvel", "subtreeangmom")
@@ -111,7 +110,7 @@ def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
             row = (jnt_dof[obj], -1)
         elif kind in SUBTREE_KINDS:
             row = (subtrees.setdefault(obj, len(subtrees)), -1)
-        else:  # TENDON_KINDS, ACTUATOR_KINDS: MuJoCo's tendon and actuator order is torchsim's
+        else:  # a tendon or actuator sensor
             row = (obj, -1)
         groups[kind].append((m.sensor_adr[i], *row))
     kinds = tuple(KIND.get(int(t), mujoco.mjtSensor(t).name.removeprefix("mjSENS_").lower()) for t in m.sensor_type)
