@@ -1,6 +1,6 @@
 """Mocap bodies and ``<weld>``/``<connect>`` equality constraints (``torchsim.welds``) against MuJoCo 4.0: the
-residuals and their rates at a random state; a body welded or connected to the world settles where MuJoCo's does; a
-body and an arm welded to a mocap body follow it as MuJoCo's do; per-env mocap targets in the step kernel; refusals;
+residuals and their rates at a random state; a body welded or connected to the world moves and rests as MuJoCo's
+does; a body and an arm welded to a mocap body follow it as MuJoCo's do; constraints that move nothing dropped; per-env mocap targets in the step kernel; refusals;
 ``<skin>`` ignored with a warning."""
 
 import warnings
@@ -81,30 +81,32 @@ HANG = """
 </worldbody><equality>{eq}</equality></mujoco>"""
 
 
-@pytest.mark.parametrize("eq", [
-    # a weld to the world origin, 1.1 m from the box: the box swings down about it, against the weld's rotation rows
-    '<weld body1="box" solimp="0.9 0.95 0.001" solref="0.02 1"/>',
-    # a connect 0.1 m above the COM, the box hanging still below it
-    '<connect body1="box" anchor="0.05 0 0.1" solref="0.02 1"/>',
+@pytest.mark.parametrize("eq,path_tolerance", [
+    # a weld to the world origin, 1.1 m from the box: the box swings about it, against the weld's soft rotation rows
+    ('<weld body1="box" solimp="0.9 0.95 0.001" solref="0.02 1"/>', 5e-4),
+    # a connect 0.1 m above the COM: the box sags 0.37 mm and hangs still
+    ('<connect body1="box" anchor="0.05 0 0.1" solref="0.02 1"/>', 2e-5),
 ], ids=["weld", "connect"])
-def test_held_body_settles_where_mujocos_does(eq):
-    """After 1 s the box rests where MuJoCo's does. The weld's force is MuJoCo's soft constraint on the bare bodies
-    (``a0`` from the other forces, ``A`` the bodies' own), so it rests at MuJoCo's residual ``R f / (K imp)``: the
-    poses agree to 1 mm and 5 mrad (MuJoCo steps at 2 ms, torchsim at 0.5 ms; the weld swings 0.6 rad down to it)."""
+def test_held_body_moves_as_mujocos_does(eq, path_tolerance):
+    """A box held from the world under gravity for 1 s. The force is MuJoCo's soft constraint on the bare bodies
+    (``a0`` from the other forces, ``A`` the body's own), which for a free body is MuJoCo's constraint: the weld's
+    box swings 0.12 rad as MuJoCo's does, its position within ``path_tolerance`` of MuJoCo's at every step (measured
+    0.24 mm: MuJoCo steps at 2 ms, torchsim at 0.5 ms), and the connect's box rests at MuJoCo's sag (0.37 mm) to
+    1e-8 m (measured 4e-10: at rest the integrators no longer matter)."""
     xml = HANG.format(eq=eq)
     m = mujoco.MjModel.from_xml_string(xml)
     d = mujoco.MjData(m)
-    for _ in range(500):
-        mujoco.mj_step(m, d)
     sys = torchsim.load_mjcf(xml, dtype=F64)
     state = pipeline.init(sys, sys.q0[None], torch.zeros(1, sys.nv, dtype=F64))
+    worst = 0.0
     for _ in range(500):
+        mujoco.mj_step(m, d)
         state = torchsim.step(sys, state, torch.zeros(1, 0, dtype=F64))
-    q = state.q[0].numpy()
-    moved = np.abs(d.qpos - m.qpos0).max()
-    assert moved > (0.1 if "weld" in eq else 1e-5)  # the weld swings the box; the connect lets it sag
-    np.testing.assert_allclose(q[:3], d.qpos[:3], atol=1e-3)
-    assert abs(abs(q[3:] @ d.qpos[3:]) - 1) < 1e-5  # quaternions within ~5 mrad
+        worst = max(worst, np.abs(state.q[0, :3].numpy() - d.qpos[:3]).max())
+    assert np.abs(d.qpos - m.qpos0).max() > (0.1 if "weld" in eq else 3e-4)  # it did move
+    assert worst < path_tolerance
+    if "connect" in eq:
+        np.testing.assert_allclose(state.q[0].numpy(), d.qpos, atol=1e-8)
     assert not state.diverged.any()
 
 
