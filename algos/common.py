@@ -45,7 +45,7 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     """The task batched over ``num_envs`` with running observation normalisation (``RunningNorm``, statistics over
     the batch too), episode return (``episode_reward``) and length (``step_count``); a ``train`` env also emits
     ``scaled_reward`` (``cfg.algo.reward_scale`` times the reward) and staggers its first episodes if
-    ``cfg.stagger_episodes``. The physics runs compiled (``torchsim.Stepper``, strategy ``auto``) if ``cfg.compile``,
+    ``cfg.stagger_episodes``, and compiles its step if ``cfg.capture``. The physics runs compiled (``torchsim.Stepper``, strategy ``auto``) if ``cfg.compile``,
     or in MuJoCo C if ``cfg.physics == "mujoco"`` (``torchsim.execution.mujoco``: the same task code on MuJoCo's
     physics); ``like``: an env whose stepper (System and compiled step) this one shares, for any ``num_envs`` above
     1. A navigation task (``torchsim.envs.NAV_ENVS``, no physics) has its depth normalised per pixel instead and
@@ -71,6 +71,11 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
         base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device,
                                   episode_length=cfg.env.episode_length,
                                   stagger_episodes=train and cfg.stagger_episodes, stepper=stepper)
+        if train and cfg.get("capture", False):
+            if stepper != "auto":  # traced as a graph, the reference step compiles for minutes
+                raise ValueError("capture=true compiles the env's step around the engine's compiled step: it needs "
+                                 "compile=true and physics=torchsim")
+            base.compile_step(mode="reduce-overhead" if torch.device(device).type == "cuda" else None)
         normalised = [k for k in ("observation", "privileged_state") if k in base.observation_spec.keys()]
         recurrent = []
     spec = base.observation_spec
@@ -192,7 +197,7 @@ def restore_rng(ckpt: dict, device: torch.device) -> None:
 #: define what is learned (algorithm and hyperparameters, networks, env, physics, seed) and must match the
 #: checkpoint's: changing one makes a new run, not a continued one.
 RESUMABLE_KEYS = ("budget", "eval", "print_every", "checkpoint_every", "recent_episodes", "logger", "video", "device",
-                  "threads", "compile", "resume")
+                  "threads", "compile", "capture", "resume")
 
 
 def check_resumable(ckpt: dict, cfg: DictConfig, world_size: int, path) -> None:
@@ -373,6 +378,7 @@ class Run:
         self.t0 = self.session_t0 - self.elapsed  # the wall clock counts the sessions before this one too
         self.t_last, self.steps_last = time.perf_counter(), self.env_steps
         self.unprinted_s, self.unprinted_steps = 0.0, 0  # training time and env steps since the last progress line
+        self.t_collected, self.unprinted_collect_s = self.t_last, 0.0  # when the batch arrived; collecting time
 
     # -- budget
     @property
@@ -400,6 +406,7 @@ class Run:
     def record_batch(self, data) -> None:
         """Count the batch's env steps and collect the returns (and, for navigation, the successes) of the
         episodes that ended in it."""
+        self.t_collected = time.perf_counter()  # the iteration's collecting ends here, its learning begins
         self.env_steps += data.numel() * self.ranks.world_size
         done = data["next", "done"].squeeze(-1)
         returns = data["next", "episode_reward"].squeeze(-1)[done]
@@ -443,6 +450,7 @@ class Run:
         self.iteration_s = time.perf_counter() - self.t_last
         steps = self.env_steps - self.steps_last
         self.unprinted_s, self.unprinted_steps = self.unprinted_s + self.iteration_s, self.unprinted_steps + steps
+        self.unprinted_collect_s += self.t_collected - self.t_last
         self.steps_last = self.env_steps
         recent = float(np.mean(self.recent)) if self.recent else float("nan")
         metrics = {**{f"train/{k}": float(v) for k, v in losses.items()}, "train/step_reward": self.step_reward,
@@ -457,7 +465,8 @@ class Run:
         self.history["step_reward"].append((self.env_steps, self.wall, self.step_reward))
         self.log(metrics)
         line = (f"[{self.cfg.algo.name} {self.cfg.env.name}] it {self.iteration:4d}  steps {self.env_steps:>11,d}  "
-                f"{self.unprinted_steps / max(self.unprinted_s, 1e-9):7.0f} steps/s  return {recent:8.2f}  "
+                f"{self.unprinted_steps / max(self.unprinted_s, 1e-9):7.0f} steps/s "
+                f"(collect {self.unprinted_collect_s / max(self.unprinted_s, 1e-9):3.0%})  return {recent:8.2f}  "
                 f"reward/step {self.step_reward:7.3f}{success}  {self.wall / 60:5.1f} min")
         eval_due = self.env_steps >= self.next_eval or self.finished()
         if eval_due:
@@ -465,7 +474,7 @@ class Run:
             self.next_eval = self.env_steps + self.cfg.eval.interval_steps
         if eval_due or self.iteration % self.cfg.print_every == 0:
             log.info(line)
-            self.unprinted_s = self.unprinted_steps = 0
+            self.unprinted_s = self.unprinted_steps = self.unprinted_collect_s = 0
         if self.iteration % self.cfg.checkpoint_every == 0 or self.finished():
             self.save()
         self.t_last = time.perf_counter()  # the next iteration's time and rate leave evaluation and saving out

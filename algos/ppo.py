@@ -60,8 +60,10 @@ class PPO:
         if frames % a.minibatches:
             raise ValueError(f"algo.minibatches ({a.minibatches}) must divide each rank's env steps per iteration "
                              f"(num_envs / ranks x unroll = {frames}): every minibatch has the loss graph's shape")
+        capture = cfg.get("capture", False)  # the env compiled its step (make_env); the policy, here
         self.collector = Collector(self.env, self.actor, frames_per_batch=frames, total_frames=-1, device=device,
-                                   auto_register_policy_transforms=False)
+                                   auto_register_policy_transforms=False, compile_policy=capture,
+                                   cudagraph_policy=capture and device.type == "cuda")
         # elements: env steps, or with a recurrent policy the envs' (unroll,) sequences
         elements = num_envs if self.recurrent else frames
         self.batches = ReplayBuffer(storage=LazyTensorStorage(elements, device=device),

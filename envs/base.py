@@ -416,6 +416,21 @@ class TorchsimEnv(EnvBase):
         steps = steps + 1
         return state, task, reward, terminated, steps >= self.episode_length, steps
 
+    def compile_step(self, **options) -> None:
+        """Run :meth:`_advance` (physics, reward, termination, task: a step's arithmetic) as ``torch.compile(**options)``
+        compiles it: a ``kernel`` stepper is one operator of its graph (``torchsim.execution.step_op``) and the small
+        ops around it fuse; with ``mode="reduce-overhead"`` on a GPU, a CUDA graph replays the whole of it."""
+        compiled = torch.compile(self._advance, **options)
+
+        def advance(*args):
+            # A CUDA graph writes its outputs into memory that its next replay reuses: each call begins a new step,
+            # and what the env keeps (the state, the reward the collector stores) is copied out (no-ops elsewhere,
+            # and a few small copies)
+            torch.compiler.cudagraph_mark_step_begin()
+            return torch.utils._pytree.tree_map(torch.clone, compiled(*args))
+
+        self._advance = advance
+
     def _restart(self, done: torch.Tensor, state: State, task: torch.Tensor, steps: torch.Tensor,
                  ctrl: torch.Tensor):
         """The envs of ``done (B,)`` at fresh start states and tasks, step count 0 and no control (what their first
