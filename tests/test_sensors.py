@@ -39,8 +39,8 @@ MODEL = """
         </body>
       </body>
       <body name="slider" pos="-.2 0 0">
-        <joint name="slide" type="slide" axis="1 0 0" range="-.2 .2" margin=".05"/>
-        <joint name="twist" type="hinge" axis="1 0 0"/>
+        <joint name="slide" type="slide" axis="1 0 0" range="-.2 .2" margin=".05" stiffness="40" armature=".1"/>
+        <joint name="twist" type="hinge" axis="1 0 0" stiffness="3" springref=".4" armature=".02"/>
         <geom type="box" size=".05 .05 .05" contype="0" conaffinity="0"/>
       </body>
       <body name="head" pos="0 0 .1">
@@ -50,7 +50,7 @@ MODEL = """
     </body>
   </worldbody>
   <tendon>
-    <fixed name="tendon" limited="true" range="-.5 .5" margin=".2">
+    <fixed name="tendon" limited="true" range="-.5 .5" margin=".2" stiffness="7" springlength="-.1 .1">
       <joint joint="shoulder" coef="1"/><joint joint="slide" coef="-2"/>
     </fixed>
   </tendon>
@@ -120,6 +120,8 @@ MODEL = """
     <magnetometer name="imu_mag" site="imu"/>
     <accelerometer name="imu_acc" site="imu"/>
     <touch name="tip_touch" site="fingertip"/>
+    <e_potential name="potential"/>
+    <e_kinetic name="kinetic"/>
     <clock name="time"/>
     <jointpos name="late" joint="twist" nsample="3" delay="0.004"/>
   </sensor>
@@ -130,7 +132,7 @@ COMPUTED = ("jointpos", "jointvel", "ballquat", "ballangvel", "tendonpos", "tend
             "actuatorfrc", "jointactuatorfrc", "tendonactuatorfrc", "framepos", "framequat", "framexaxis",
             "frameyaxis", "framezaxis", "framelinvel", "frameangvel", "subtreecom", "subtreelinvel", "subtreeangmom",
             "gyro", "velocimeter", "magnetometer", "jointlimitpos", "jointlimitvel", "tendonlimitpos",
-            "tendonlimitvel")
+            "tendonlimitvel", "e_potential", "e_kinetic")
 NOT_COMPUTED = {"imu_acc": "accelerometer", "tip_touch": "touch", "time": "clock", "late": "jointpos.*delay"}
 ENVS = 4
 #: The shoulder and slide coordinates of the 4 envs: within the margin of the shoulder's lower and upper limits

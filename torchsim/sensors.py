@@ -194,6 +194,10 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
         elif kind in ("tendonlimitpos", "tendonlimitvel"):
             values = _limit_values(kind == "tendonlimitpos", tendons.lengths(sys, q_dof), tendons.lengths(sys, qd_dof),
                                    sys.ten_range, sys.ten_margin, sys.ten_limited).index_select(0, group.obj)[None]
+        elif kind == "e_potential":
+            values = _potential_energy(sys, state, q_dof).expand(1, group.obj.shape[0], batch)
+        elif kind == "e_kinetic":
+            values = _kinetic_energy(sys, state, qd_dof).expand(1, group.obj.shape[0], batch)
         elif kind in SUBTREE_KINDS:
             values = _subtree_values(sys, frames, group)
         else:
@@ -215,6 +219,34 @@ def _limit_values(position: bool, x: torch.Tensor, rate: torch.Tensor, bounds: t
     lower, upper = limited & (below < margin), limited & (above < margin)
     at_lower, at_upper = (below - margin, above - margin) if position else (rate, -rate)
     return torch.where(lower, at_lower, torch.where(upper, at_upper, 0.0))
+
+
+def _potential_energy(sys: System, state: State, q: torch.Tensor) -> torch.Tensor:
+    """MuJoCo's ``e_potential`` ``(1, B)`` [J] at dof coordinates ``q (D, B)``: ``-m g . x`` of every body, and the
+    joint and tendon springs' ``k x^2 / 2`` (a tendon's ``x`` beyond its dead band)."""
+    x_pos = lanes.to_lanes(state.x_pos, 1)
+    gravity = sys.gravity.view(3, 1, 1)
+    weight = -(lanes.param(sys.body_mass, 1) * spatial.dot(gravity, x_pos)).sum(0, keepdim=True)
+    stretch = q - lanes.param(sys.dof_springref, 1)
+    joints = 0.5 * (lanes.param(sys.dof_stiffness, 1) * stretch * stretch).sum(0, keepdim=True)
+    energy = sys.sensor_static_potential + weight + joints
+    if sys.ten_springs:  # static: a model without tendon springs has none to add
+        length = tendons.lengths(sys, q)
+        lo, hi = lanes.param(sys.ten_lengthspring, 2).unbind(-2)
+        stretch = torch.clamp(length - hi, min=0.0) + torch.clamp(length - lo, max=0.0)
+        energy = energy + 0.5 * (lanes.param(sys.ten_stiffness, 1) * stretch * stretch).sum(0, keepdim=True)
+    return energy
+
+
+def _kinetic_energy(sys: System, state: State, qd: torch.Tensor) -> torch.Tensor:
+    """MuJoCo's ``e_kinetic`` ``(1, B)`` [J], ``qvel M qvel / 2``, from the bodies' COM and angular velocities and
+    the dofs' rates ``qd (D, B)`` (their armature)."""
+    quat, vel, ang = (lanes.to_lanes(x, 1) for x in (state.x_quat, state.xd_vel, state.xd_ang))
+    ang_body = spatial.quat_rotate_inv(quat, ang)
+    spin = spatial.dot(ang_body, spatial.matvec(lanes.param(sys.body_inertia, 1, 2), ang_body))
+    bodies = (lanes.param(sys.body_mass, 1) * spatial.dot(vel, vel) + spin).sum(0, keepdim=True)
+    rotors = (lanes.param(sys.dof_armature, 1) * qd * qd).sum(0, keepdim=True)
+    return 0.5 * (bodies + rotors)
 
 
 def _joint_actuator_forces(sys: System, force: torch.Tensor) -> torch.Tensor:

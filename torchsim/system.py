@@ -174,6 +174,7 @@ class System:
         principal axes), sensor_subtree_mass (K,) [kg], sensor_subtree_inertia (K, 3) principal moments [kg m^2].
         sensor_magnetic: (3,) MuJoCo's ``magnetic`` field, world frame.  sensor_cutoff: (nsensordata,) MuJoCo's
         ``cutoff`` clamping each real-valued slot to ``[-cutoff, cutoff]`` (inf where none).
+        sensor_static_potential: () [J] the gravitational potential energy of the bodies fused into the world.
     MuJoCo bodies (for poses of fused bodies, e.g. rendering): mjbody_body (nbody,) ext index;
         mjbody_pos, mjbody_quat: frame offset of each MuJoCo body in its fused body's frame.
     """
@@ -339,6 +340,7 @@ class System:
     sensor_subtree_inertia: torch.Tensor
     sensor_magnetic: torch.Tensor
     sensor_cutoff: torch.Tensor
+    sensor_static_potential: torch.Tensor
     # MuJoCo body frames
     mjbody_body: torch.Tensor
     mjbody_pos: torch.Tensor

@@ -40,8 +40,12 @@ KIND = {int(t): n for t, n in {
     Sens.mjSENS_GYRO: "gyro", Sens.mjSENS_VELOCIMETER: "velocimeter",
     Sens.mjSENS_MAGNETOMETER: "magnetometer", Sens.mjSENS_JOINTLIMITPOS: "jointlimitpos",
     Sens.mjSENS_JOINTLIMITVEL: "jointlimitvel", Sens.mjSENS_TENDONLIMITPOS: "tendonlimitpos",
-    Sens.mjSENS_TENDONLIMITVEL: "tendonlimitvel",
+    Sens.mjSENS_TENDONLIMITVEL: "tendonlimitvel", Sens.mjSENS_E_POTENTIAL: "e_potential",
+    Sens.mjSENS_E_KINETIC: "e_kinetic",
 }.items()}
+#: MJCF names of types not computed whose enum name differs.
+ELEMENT = {int(Sens.mjSENS_GEOMDIST): "distance", int(Sens.mjSENS_GEOMNORMAL): "normal",
+           int(Sens.mjSENS_GEOMFROMTO): "fromto"}
 #: The computed kinds by what their group's ``obj`` indexes (``System.sensor_groups``); the other computed kinds
 #: (tendon and actuator sensors) index tendons and actuators, whose order is MuJoCo's.
 QPOS_KINDS, QVEL_KINDS = ("jointpos", "ballquat"), ("jointvel", "ballangvel")
@@ -50,6 +54,7 @@ FRAME_KINDS = ("framepos", "framequat", "framexaxis", "frameyaxis", "framezaxis"
                "gyro", "velocimeter", "magnetometer")
 SUBTREE_KINDS = ("subtreecom", "subtreelinvel", "subtreeangmom")
 LIMIT_KINDS = ("jointlimitpos", "jointlimitvel", "tendonlimitpos", "tendonlimitvel")
+ENERGY_KINDS = ("e_potential", "e_kinetic")
 #: The MjModel field prefix of each object type frame sensors read besides bodies.
 PREFIX = {int(Obj.mjOBJ_GEOM): "geom", int(Obj.mjOBJ_SITE): "site", int(Obj.mjOBJ_CAMERA): "cam"}
 #: Why the other sensor types are not computed.
@@ -61,8 +66,7 @@ WHY = {int(t): why for t, why in {
     Sens.mjSENS_FRAMEANGACC: _ACCELERATIONS, Sens.mjSENS_TOUCH: _FORCES, Sens.mjSENS_FORCE: _FORCES,
     Sens.mjSENS_TORQUE: _FORCES, Sens.mjSENS_CONTACT: _FORCES, Sens.mjSENS_TACTILE: _FORCES,
     Sens.mjSENS_JOINTLIMITFRC: _FORCES, Sens.mjSENS_TENDONLIMITFRC: _FORCES,
- Sens.mjSENS_E_POTENTIAL: _NOT_YET,
-    Sens.mjSENS_E_KINETIC: _NOT_YET, Sens.mjSENS_CAMPROJECTION: _NOT_YET, Sens.mjSENS_INSIDESITE: _NOT_YET,
+    Sens.mjSENS_CAMPROJECTION: _NOT_YET, Sens.mjSENS_INSIDESITE: _NOT_YET,
     Sens.mjSENS_GEOMDIST: _NOT_YET, Sens.mjSENS_GEOMNORMAL: _NOT_YET, Sens.mjSENS_GEOMFROMTO: _NOT_YET,
     Sens.mjSENS_RANGEFINDER: "it is not implemented yet (ray casts against the geoms)",
     Sens.mjSENS_CLOCK: "it needs the simulation time, which the State does not hold",
@@ -110,10 +114,13 @@ def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
             row = (jnt_dof[obj], -1)
         elif kind in SUBTREE_KINDS:
             row = (subtrees.setdefault(obj, len(subtrees)), -1)
+        elif kind in ENERGY_KINDS:  # the whole model's
+            row = (0, -1)
         else:  # a tendon or actuator sensor
             row = (obj, -1)
         groups[kind].append((m.sensor_adr[i], *row))
-    kinds = tuple(KIND.get(int(t), mujoco.mjtSensor(t).name.removeprefix("mjSENS_").lower()) for t in m.sensor_type)
+    kinds = tuple(KIND.get(int(t), ELEMENT.get(int(t), mujoco.mjtSensor(t).name.removeprefix("mjSENS_").lower()))
+                  for t in m.sensor_type)
     _warn_skipped(m, kinds, skipped)
     terms = _subtree_terms(m, fused, frames, subtrees)
     cutoff = np.full(m.nsensordata, np.inf)
@@ -136,6 +143,7 @@ def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
         sensor_subtree_mass=torch.as_tensor(np.array([t.mass for t in terms], dtype=float)),
         sensor_subtree_inertia=torch.as_tensor(np.array([t.inertia for t in terms], dtype=float).reshape(-1, 3)),
         sensor_magnetic=torch.as_tensor(m.opt.magnetic.copy()), sensor_cutoff=torch.as_tensor(cutoff),
+        sensor_static_potential=torch.tensor(_static_potential(m, fused), dtype=torch.float64),
     )
 
 
@@ -166,7 +174,25 @@ def _not_computed(m: mujoco.MjModel, i: int, kind: str | None) -> str:
         return "limits are disabled (<flag limit>), which torchsim does not model"
     if kind in SUBTREE_KINDS and _subtree_mass(m, obj) < mujoco.mjMINVAL:
         return "its subtree has no mass"
+    if kind == "e_potential":
+        springs = np.any(m.jnt_stiffness != 0) or np.any(m.tendon_stiffness != 0)
+        if springs and m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_SPRING):
+            return "springs are disabled (<flag spring>), which torchsim does not model"
+        if np.any(m.jnt_stiffnesspoly != 0):
+            return "polynomial joint stiffness is not modelled"
+        if any(m.body_mass[b] > 0 for b in range(1, m.nbody) if m.body_mocapid[m.body_weldid[b]] >= 0):
+            return "it weighs mocap bodies, whose poses are System parameters"
     return ""
+
+
+def _static_potential(m: mujoco.MjModel, fused: FusedBodies) -> float:
+    """The gravitational potential energy [J] of the bodies fused into the world, ``-m g . x`` at their COMs
+    (MuJoCo's ``e_potential`` counts every body; the System keeps no mass for these)."""
+    if m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_GRAVITY):
+        return 0.0
+    static = [b for b in range(1, m.nbody) if m.body_weldid[b] == 0]
+    coms = [compose(*fused.frame[b], m.body_ipos[b], m.body_iquat[b])[0] for b in static]
+    return float(-sum(m.body_mass[b] * m.opt.gravity @ com for b, com in zip(static, coms)))
 
 
 def _warn_skipped(m: mujoco.MjModel, kinds: tuple, skipped: list) -> None:
