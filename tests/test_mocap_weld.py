@@ -12,6 +12,8 @@ import torch
 
 import torchsim
 from torchsim import pipeline, spatial, welds
+from torchsim.execution.kernel import emit_cuda
+from torchsim.execution.kernel.step import StepKernel
 from models import F64
 
 # every kind of side: bodies with a COM away from their frame, a fused child, the world, a mocap body and a jointless
@@ -248,6 +250,23 @@ def test_per_env_mocap_targets_in_the_step_kernel():
     moved = stepper.for_system(per_env.replace(mocap_pos=targets.flip(0)))
     moved(got, ctrl)
     assert moved.num_kernels == 1 and moved._kernel() is stepper._kernel()
+
+
+def test_per_env_mocap_targets_in_the_cuda_kernel(monkeypatch, tmp_path):
+    """The same step emitted as CUDA C (one thread an env), its source compiled for the host as
+    tests/test_strategies.py checks the GPU kernel: it steps two envs chasing two targets as the reference does."""
+    monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))
+    sys = torchsim.load_mjcf(ARM, dtype=F64).replace(
+        mocap_pos=torch.tensor([[[0.38, 0.05, 0.45]], [[0.4, -0.04, 0.52]]], dtype=F64),
+        mocap_quat=torch.tensor([[[1.0, 0, 0, 0.1]], [[0.98, 0, 0.2, 0]]], dtype=F64))
+    kernel = StepKernel(sys, emitter=emit_cuda)
+    start = pipeline.init(sys, sys.q0.expand(2, -1), torch.zeros(2, sys.nv, dtype=F64))
+    ctrl = torch.zeros(2, 0, dtype=F64)
+    expected, got = start, start
+    for _ in range(20):
+        expected, got = torchsim.step(sys, expected, ctrl), kernel(sys, got, ctrl)
+    assert (expected.x_pos - start.x_pos).abs().max() > 1e-3
+    assert (got.x_pos - expected.x_pos).abs().max() < 1e-9
 
 
 @pytest.mark.parametrize("xml,match", [
