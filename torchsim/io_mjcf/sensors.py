@@ -3,12 +3,13 @@ MuJoCo's ``sensordata``, grouped by type for ``torchsim.sensors``.
 
 Sensors read the State: joint, tendon and actuator positions and velocities, frame poses and velocities of bodies,
 geoms, sites and (fixed) cameras, subtree centres of mass, their velocities and angular momenta, gyros,
-velocimeters and magnetometers, joint and tendon limits, and, given the controls, actuator forces. Sensors that
-need accelerations or contact and constraint forces (``accelerometer``, ``touch``, ``force``, ``torque``,
-``framelinacc``, ...), the simulation time (``clock``) or a history (``delay``, ``interval``), and those not
-implemented yet (``rangefinder``, energy sensors, ...; :data:`WHY`), are kept in the layout but not computed: one
-warning names them, their ``sensordata`` slots read NaN and reading one by name raises. ``cutoff`` clamps as in
-MuJoCo; ``noise`` is ignored, as MuJoCo's engine ignores it (the model only stores it).
+velocimeters and magnetometers, joint and tendon limits, potential and kinetic energy, and, given the controls,
+actuator forces. Sensors that need accelerations or contact and constraint forces (``accelerometer``, ``touch``,
+``force``, ``torque``, ``framelinacc``, ...), the simulation time (``clock``) or a history (``delay``,
+``interval``), and those not implemented yet (``rangefinder``, ``camprojection``, ``insidesite``, ``distance``,
+``normal``, ``fromto``; :data:`WHY`), are kept in the layout but not computed: one warning names them, their
+``sensordata`` slots read NaN and reading one by name raises. ``cutoff`` clamps as in MuJoCo; ``noise`` is
+ignored, as MuJoCo's engine ignores it (the model only stores it).
 """
 
 import warnings
