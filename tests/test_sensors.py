@@ -247,6 +247,23 @@ def test_not_computed_types_warn_and_raise(random_states):
     assert len(by_name) == len(sys.sensor_names) - len(NOT_COMPUTED)
 
 
+def test_sensors_on_mocap_bodies_are_not_computed():
+    """A mocap body's pose is a System parameter the sensors do not read (yet): a sensor on it, or on a subtree or
+    the model's weight that holds it, is named in the warning and raises, rather than reading the model pose."""
+    xml = """<mujoco><worldbody>
+      <body name="target" mocap="true" pos="0 0 1"><geom size=".1" contype="0" conaffinity="0"/><site name="s"/></body>
+      <body><freejoint/><geom size=".1"/></body></worldbody>
+      <sensor><framepos name="target_pos" objtype="site" objname="s"/><subtreecom name="all" body="world"/>
+        <e_potential name="weight"/></sensor></mujoco>"""
+    with pytest.warns(UserWarning, match="mocap") as caught:
+        sys = torchsim.load_mjcf(xml, dtype=F64)
+    state = torchsim.init(sys, torch.tensor([[0, 0, 1, 1, 0, 0, 0.0]], dtype=F64), torch.zeros(1, 6, dtype=F64))
+    for name in ("target_pos", "all", "weight"):
+        assert repr(name) in str(caught[0].message)
+        with pytest.raises(torchsim.UnsupportedMJCFError, match=f"{name}.*mocap"):
+            torchsim.sensor(sys, state, name)
+
+
 def test_reading_by_name(random_states):
     """One sensor by name and the dict of all are slices of ``sensordata``; a sensor that does not read actuator
     forces needs no controls, one that does names what it needs."""
