@@ -1,6 +1,6 @@
 """Watch an env in the browser (3D, orbit with the mouse), or save a rollout as one self-contained HTML file.
 
-    pip install 'torchsim[viewer]'                                           # viser
+    pip install -e '.[viewer]'                                               # viser, from this checkout
     python scripts/view.py --env ant                                         # random actions, live
     python scripts/view.py --policy outputs/ppo_ant/<run>/checkpoints/last.pt  # a trained policy, episodes on a loop
     python scripts/view.py --watch outputs/ppo_ant/<run>                     # a training run, live: reloads its

@@ -134,7 +134,7 @@ def free_port() -> int:
 
 
 def test_viewer_serves_this_machine_by_default():
-    pytest.importorskip("viser", reason="viser not installed (pip install 'torchsim[viewer]')")
+    pytest.importorskip("viser", reason="viser not installed (pip install viser)")
     from torchsim.render.viewer import Viewer
 
     with warnings.catch_warnings():
@@ -150,7 +150,7 @@ def test_viewer_serves_this_machine_by_default():
 def test_viewer_on_the_network_warns(monkeypatch):
     """``host="0.0.0.0"`` reaches the server, with a warning; the server is kept on the loopback here, so the test
     opens no port to the network."""
-    viser = pytest.importorskip("viser", reason="viser not installed (pip install 'torchsim[viewer]')")
+    viser = pytest.importorskip("viser", reason="viser not installed (pip install viser)")
     from torchsim.render.viewer import Viewer
 
     asked = []

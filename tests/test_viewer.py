@@ -93,7 +93,7 @@ def test_projection_matches_torchsim_renderer():
 
 
 def test_geom_meshes_have_mujoco_sizes():
-    pytest.importorskip("viser", reason="viser not installed (pip install 'torchsim[viewer]')")
+    pytest.importorskip("viser", reason="viser not installed (pip install viser)")
     from torchsim.render.viewer import geom_mesh
 
     cases = {"sphere": ((0.3, 0, 0), (0.3, 0.3, 0.3)), "ellipsoid": ((0.1, 0.2, 0.3), (0.1, 0.2, 0.3)),
@@ -108,7 +108,7 @@ def test_geom_meshes_have_mujoco_sizes():
 
 
 def test_viewer_moves_bodies_to_state():
-    pytest.importorskip("viser", reason="viser not installed (pip install 'torchsim[viewer]')")
+    pytest.importorskip("viser", reason="viser not installed (pip install viser)")
     from torchsim.render.viewer import Viewer
 
     _, scene, state = two_bodies((0.5, 0.0, 0.3), (-0.6, 0.4, -0.2))
@@ -163,7 +163,7 @@ def _screenshot(browser, page, width, height, ready):
 def test_saved_file_in_headless_chromium(tmp_path):
     """Two saved viewer files (the ball moved between them) side by side in one page; headless Chromium's
     screenshot shows each body within a few pixels of its projected position, in both files."""
-    pytest.importorskip("viser", reason="viser not installed (pip install 'torchsim[viewer]')")
+    pytest.importorskip("viser", reason="viser not installed (pip install viser)")
     browser = _chromium()
     if browser is None:
         pytest.skip("no Chromium (apt-get install chromium) to open the saved viewer file")

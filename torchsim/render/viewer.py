@@ -11,7 +11,7 @@ Each geom of the :class:`~torchsim.render.Scene` (plane, sphere, capsule, ellips
 mesh in its colour, a child of its torchsim body's frame; per update only the bodies' frames move
 (``State.x_pos`` / ``x_quat``, as :func:`torchsim.render.render` reads them). :func:`save_html` records a
 trajectory into a single HTML file holding viser's client and the recording (playback bar, orbit camera) that
-opens in a browser from disk, with neither torchsim nor Python installed. ``pip install 'torchsim[viewer]'``
+opens in a browser from disk, with neither torchsim nor Python installed. ``pip install -e '.[viewer]'``
 installs viser; ``scripts/view.py`` opens rollouts, trained policies and live training runs.
 
 Camera: ``eye``/``target``/``fovy`` (degrees, vertical) set the initial view as :meth:`Camera.look_at` does,
@@ -35,7 +35,7 @@ def _viser():
     try:
         import viser
     except ImportError as err:
-        raise ImportError("the viewer needs viser: pip install 'torchsim[viewer]' (or pip install viser)") from err
+        raise ImportError("the viewer needs viser: pip install viser (in a torchsim checkout: pip install -e '.[viewer]')") from err
     return viser
 
 
