@@ -7,7 +7,8 @@
 Batched and differentiable torch ops on the public (batch-first) State, never part of the step. The values are
 MuJoCo's definitions evaluated at the State: frames (sites, geoms, bodies, cameras) from the body poses, where
 ``State.x_pos`` is each body's centre of mass; velocities of points from the body's COM velocity and angular
-velocity; joint, tendon and actuator quantities from ``q``/``qd``. Actuator forces (``actuatorfrc``,
+velocity; joint, tendon and actuator quantities from ``q``/``qd``; energies from the bodies' masses, inertias and
+poses, the springs and the rotors (armature). Actuator forces (``actuatorfrc``,
 ``jointactuatorfrc``, ``tendonactuatorfrc``) follow the actuator model at the given controls, as MuJoCo's
 ``actuator_force``; the State does not keep the last controls, so these take ``ctrl``. After ``mj_step`` MuJoCo's
 ``sensordata`` holds the values at the state the step started from: compare with these at that State.
