@@ -189,7 +189,7 @@ def test_sensor_type_matches_mujoco(random_states, kind):
 
 def test_cutoff_clamps_real_values(random_states):
     """``cutoff`` clamps as MuJoCo's does: the clipped joint velocity and velocimeter saturate in some env."""
-    sys, state, _, ours, theirs = random_states
+    sys, state, _, ours, _ = random_states
     for name, cutoff in (("clipped_vel", 0.5), ("imu_velocimeter", 0.3)):
         i = sys.sensor_names.index(name)
         values = ours[:, sys.sensor_adr[i]:sys.sensor_adr[i] + sys.sensor_dims[i]]
