@@ -59,13 +59,6 @@ def test_spatial_tendon_unsupported():
         torchsim.load_mjcf(xml)
 
 
-def test_equality_unsupported():
-    xml = TWO_HINGES.format(extra='<equality><connect name="pin" body1="l2" anchor="0.3 0 0"/></equality>')
-    mujoco.MjModel.from_xml_string(xml)  # <tendon> and <joint> equality constraints load: tests/test_equality.py
-    with pytest.raises(torchsim.UnsupportedMJCFError, match="equality constraint 'pin'.*<connect>"):
-        torchsim.load_mjcf(xml)
-
-
 CYLINDER = """
 <mujoco>
   <worldbody>
