@@ -2,8 +2,9 @@
 
 Each shape pair has a fixed number of contact points (a box on a plane tests its 8 corners), so the contact
 count is static and activity is a mask, never control flow. Geom ``a`` is the lower-ranked shape of a pair
-(sphere < capsule < ellipsoid < cylinder < box < plane); normals point from ``b`` towards ``a``. Pairs with an
-ellipsoid or a cylinder are computed in ``torchsim.collision_round``, which gives their accuracy.
+(sphere < capsule < ellipsoid < cylinder < box < mesh < plane); normals point from ``b`` towards ``a``. Pairs with
+an ellipsoid or a cylinder are computed in ``torchsim.collision_round``, pairs with a mesh (its convex hull) in
+``torchsim.collision_mesh``; each module gives their accuracy.
 
 Tensors are in the lanes layout (``torchsim.lanes``). A group's ``P`` pairs with ``K`` points each are evaluated as
 ``(*C, P, K, B)``, the point axis at ``-2`` as every entity axis inserted before the batch, and flattened to the
@@ -18,11 +19,11 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import collision_round, lanes, spatial
+from torchsim import collision_mesh, collision_round, lanes, spatial
 from torchsim.kinematics import Bodies
-from torchsim.system import POINTS_PER_PAIR, System
+from torchsim.system import System
 
-SHAPE_RANK = {"sphere": 0, "capsule": 1, "ellipsoid": 2, "cylinder": 3, "box": 4, "plane": 5}
+SHAPE_RANK = {"sphere": 0, "capsule": 1, "ellipsoid": 2, "cylinder": 3, "box": 4, "mesh": 5, "plane": 6}
 # unit box corners (3, 1, 8, 1): components, then broadcast over pairs, the 8 corners, broadcast over the batch
 _CORNERS = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
                         dtype=torch.float64).T[:, None, :, None]
@@ -177,11 +178,10 @@ def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Co
     geom_rot = spatial.quat_to_mat(lanes.param(sys.geom_quat, 1, 1))
     pos, normal, depth, body_a, body_b, friction = [], [], [], [], [], []
     for group in sys.contact_groups:
-        k = POINTS_PER_PAIR[group.kind]
         on_world = _on_world(group)
         geom = group.geom_a if on_world else torch.cat((group.geom_a, group.geom_b))  # moving sides' poses at once
         body = sys.geom_body[geom]
-        full = any(shape in group.kind for shape in ("box", "ellipsoid", "cylinder"))
+        full = any(shape in group.kind for shape in ("box", "ellipsoid", "cylinder", "mesh"))
         frames = geom_rot if full else geom_rot[:, 2:]  # capsules and planes need only their z axes
         x, r = bodies.x_pos.index_select(-2, body), rot.index_select(-2, body)
         world_pos = x + spatial.matvec(r, geom_pos.index_select(-2, geom))
@@ -192,7 +192,13 @@ def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Co
         else:
             (pos_a, pos_b), (rot_a, rot_b) = world_pos.chunk(2, -2), world_rot.chunk(2, -2)
         size_a, size_b = geom_size.index_select(-2, torch.cat((group.geom_a, group.geom_b))).chunk(2, -2)
-        pt, n, dist = _pair_contacts(group.kind, pos_a, rot_a, size_a, pos_b, rot_b, size_b)
+        if "mesh" in group.kind:
+            hull_a, hull_b = collision_mesh.hulls(sys, group.geom_a), collision_mesh.hulls(sys, group.geom_b)
+            pt, n, dist = collision_mesh.pair_contacts(group.kind, pos_a, rot_a, size_a, hull_a, pos_b, rot_b, size_b,
+                                                       hull_b, _box_corners, _point_box)
+        else:
+            pt, n, dist = _pair_contacts(group.kind, pos_a, rot_a, size_a, pos_b, rot_b, size_b)
+        k = pt.shape[-2]
         pos.append(pt.flatten(-3, -2))
         normal.append(n.flatten(-3, -2))
         depth.append((lanes.param(group.margin, 1).unsqueeze(-2) - dist).flatten(-3, -2))

@@ -14,6 +14,21 @@ POINTS_PER_PAIR = {
 }
 
 
+#: Contact points per pair of the kinds with a mesh (``torchsim.collision_mesh``), as (fixed, per vertex of the
+#: model's largest hull): a mesh pair tests every vertex of its (padded) hulls.
+MESH_POINTS_PER_PAIR = {"mesh_plane": (0, 1), "sphere_mesh": (1, 0), "capsule_mesh": (3, 0), "box_mesh": (8, 1),
+                        "mesh_mesh": (0, 2)}
+
+
+def points_per_pair(kind: str, hull_vertices: int) -> int:
+    """Contact points a pair of ``kind`` evaluates per substep, in a model whose largest hull has ``hull_vertices``
+    vertices (``System.geom_hull_vert``)."""
+    if kind in MESH_POINTS_PER_PAIR:
+        fixed, per_vertex = MESH_POINTS_PER_PAIR[kind]
+        return fixed + per_vertex * hull_vertices
+    return POINTS_PER_PAIR[kind]
+
+
 class ContactGroup(NamedTuple):
     """All candidate geom pairs of one shape combination, evaluated together every substep.
 
@@ -146,6 +161,10 @@ class System:
     Geometry and contacts:
         geom_body: (G,) ext body index.  geom_pos, geom_quat: (G, 3), (G, 4) from the body COM in the body frame
         (world frame for static geoms).  geom_size: (G, 3) MuJoCo sizes.  contact_groups: one per shape pair.
+        geom_hull_vert: (G, V, 3) [m] each colliding mesh geom's convex hull vertices, geom frame, padded to the
+        model's largest hull (``V`` vertices, 0 without colliding meshes; ``torchsim.io_mjcf.meshes``);
+        geom_hull_real: (G, V) false at padding; geom_hull_plane: (G, F, 4) the hull's face planes (outward
+        unit normal, offset [m]), padded by repeating the first.
         contact_soft: whether contacts are MuJoCo's soft constraint (``load_mjcf(contact_model="soft")``, the
         spring method; static).  Per contact point ``C`` (the order of ``collision.contacts``):
         contact_gains: (C, 2) ``K`` [1/s^2], ``B`` [1/s] from the pair's ``solref``.  contact_solimp: (C, 5).
@@ -304,6 +323,9 @@ class System:
     geom_pos: torch.Tensor
     geom_quat: torch.Tensor
     geom_size: torch.Tensor
+    geom_hull_vert: torch.Tensor
+    geom_hull_real: torch.Tensor
+    geom_hull_plane: torch.Tensor
     contact_groups: tuple
     contact_soft: bool
     contact_gains: torch.Tensor
@@ -358,7 +380,8 @@ class System:
     @property
     def num_contacts(self) -> int:
         """Contact points evaluated per env and substep (a box-plane pair counts its 8 corners)."""
-        return sum(POINTS_PER_PAIR[g.kind] * g.geom_a.shape[0] for g in self.contact_groups)
+        return sum(points_per_pair(g.kind, self.geom_hull_vert.shape[1]) * g.geom_a.shape[0]
+                   for g in self.contact_groups)
 
     @property
     def num_contact_pairs(self) -> int:

@@ -9,9 +9,10 @@ import torch
 from torchsim import joint_space
 from torchsim.collision import SHAPE_RANK
 from torchsim.io_mjcf.bodies import FusedBodies, compose
+from torchsim.io_mjcf.meshes import hull_fields
 from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
 from torchsim.io_mjcf.tendons import solref_gains
-from torchsim.system import POINTS_PER_PAIR, ContactGroup
+from torchsim.system import MESH_POINTS_PER_PAIR, POINTS_PER_PAIR, ContactGroup, points_per_pair
 
 SHAPE_NAME = {
     int(mujoco.mjtGeom.mjGEOM_PLANE): "plane",
@@ -20,6 +21,7 @@ SHAPE_NAME = {
     int(mujoco.mjtGeom.mjGEOM_BOX): "box",
     int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid",
     int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinder",
+    int(mujoco.mjtGeom.mjGEOM_MESH): "mesh",
 }
 
 
@@ -44,11 +46,11 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies, contact_soft: bool) -> di
             raise UnsupportedMJCFError(
                 f"geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, bad)!r} of type "
                 f"{mujoco.mjtGeom(m.geom_type[bad]).name} can collide; contact geoms must be plane, sphere, "
-                "capsule, box, ellipsoid or cylinder (set contype/conaffinity to 0 for visual-only geoms)")
+                "capsule, box, ellipsoid, cylinder or mesh (set contype/conaffinity to 0 for visual-only geoms)")
         if names.count("plane") == 1 and m.body_weldid[m.geom_bodyid[g1 if names[0] == "plane" else g2]] != 0:
             raise UnsupportedMJCFError("planes must belong to the world body")
         (ga, na), (gb, nb) = sorted(((g1, names[0]), (g2, names[1])), key=lambda x: SHAPE_RANK[x[1]])
-        if f"{na}_{nb}" not in POINTS_PER_PAIR:
+        if f"{na}_{nb}" not in POINTS_PER_PAIR | MESH_POINTS_PER_PAIR:
             geom_a, geom_b = (name(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in (ga, gb))
             raise UnsupportedMJCFError(
                 f"geoms {geom_a!r} ({na}) and {geom_b!r} ({nb}) can collide, and {na}-{nb} contacts are not "
@@ -63,14 +65,17 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies, contact_soft: bool) -> di
                              for i in range(4)))
         for kind, rows in sorted(groups.items()))
     # the soft contacts' parameters per contact point, in collision.contacts' order: groups, then pairs, then points
-    points = [p for kind, rows in sorted(groups.items()) for p in rows for _ in range(POINTS_PER_PAIR[kind])]
+    hulls = hull_fields(m, [g for rows in groups.values() for p in rows for g in p[:2]])
+    hull_vertices = hulls["geom_hull_vert"].shape[1]
+    points = [p for kind, rows in sorted(groups.items()) for p in rows
+              for _ in range(points_per_pair(kind, hull_vertices))]
     solref, solimp, invweight = (np.array([p[4 + i] for p in points]).reshape(-1, *shape)
                                  for i, shape in enumerate(((2,), (5,), ())))
     bodies = [[fused.body_of(m, m.geom_bodyid[g]) for g in p[:2]] for p in points]
     return dict(
         geom_body=torch.as_tensor([fused.body_of(m, m.geom_bodyid[g]) for g in range(m.ngeom)], dtype=torch.long),
         geom_pos=torch.as_tensor(np.array(gpos).reshape(-1, 3)), geom_quat=torch.as_tensor(np.array(gquat).reshape(-1, 4)),
-        geom_size=torch.as_tensor(m.geom_size.copy()), contact_groups=contact_groups,
+        geom_size=torch.as_tensor(m.geom_size.copy()), **hulls, contact_groups=contact_groups,
         contact_gains=torch.as_tensor(solref_gains(m, solref, solimp)), contact_solimp=torch.as_tensor(solimp),
         contact_invweight=torch.as_tensor(invweight), contact_solimp_square=bool((solimp[:, 4] == 2).all()),
         contact_pyramidal=m.opt.cone == int(mujoco.mjtCone.mjCONE_PYRAMIDAL),

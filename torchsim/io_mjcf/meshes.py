@@ -1,0 +1,86 @@
+"""Mesh geoms -> their convex hulls, as MuJoCo collides them (``torchsim.collision_mesh`` reads them).
+
+MuJoCo collides a mesh as the convex hull it computes at compile time (``MjModel.mesh_graph``: per mesh
+``numvert, numface, vert_edgeadr[numvert], vert_globalid[numvert], edge_localid[numvert + 3 numface],
+face_globalid[3 numface]``, the hull's vertices and triangles as indices into the mesh's ``mesh_vert``). Mesh
+vertices are in the mesh frame, which MuJoCo's compiler aligns with the geom frame (it moves the mesh to its
+centroid and principal axes and folds that pose into ``geom_pos``/``geom_quat``), so the hull is in the geom
+frame as it is.
+
+Every colliding mesh's hull is padded to the model's largest, so that a contact group's shapes are static: its
+vertices repeat the first (masked off: ``geom_hull_real``) and its face planes repeat the first (a maximum over
+planes is unchanged by a repeat). Coplanar hull triangles are merged into one plane.
+"""
+
+import mujoco
+import numpy as np
+import torch
+
+from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
+
+#: The most hull vertices a colliding mesh may have. Contacts test every hull vertex against the other geom's face
+#: planes (``torchsim.collision_mesh``), so a mesh-mesh pair costs ``2 V F`` plane tests, ``F <= 2 V - 4`` the
+#: hull's triangles: at 64 vertices 16k per pair per substep. The robot models of robosuite and gymnasium-robotics
+#: have hulls of 100-2100 vertices (median 232 over their colliding meshes); MuJoCo's ``maxhullvert`` caps a
+#: hull at compile time, and with it MuJoCo and torchsim collide the same hull.
+MAX_HULL_VERTICES = 64
+
+
+def hull_fields(m: mujoco.MjModel, geoms) -> dict:
+    """The convex hulls of the mesh geoms among ``geoms`` (those that can collide) in their geom frames:
+    ``geom_hull_vert (G, V, 3)`` [m], ``geom_hull_real (G, V)`` (false at padding) and ``geom_hull_plane (G, F, 4)``
+    (outward unit normal and offset [m]: a point ``x`` is inside where ``n . x <= offset`` for every plane), ``V``
+    and ``F`` the model's largest hull (0 without colliding meshes). Refuses a hull of more than
+    ``MAX_HULL_VERTICES`` vertices by name."""
+    hulls = {g: _hull(m, g) for g in sorted(set(geoms)) if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH}
+    nvert = max((len(v) for v, _ in hulls.values()), default=0)
+    nplane = max((len(p) for _, p in hulls.values()), default=0)
+    vert, real, plane = np.zeros((m.ngeom, nvert, 3)), np.zeros((m.ngeom, nvert), bool), np.zeros((m.ngeom, nplane, 4))
+    for g, (v, p) in hulls.items():
+        vert[g], real[g, :len(v)], plane[g] = _padded(v, nvert), True, _padded(p, nplane)
+    return dict(geom_hull_vert=torch.as_tensor(vert), geom_hull_real=torch.as_tensor(real),
+                geom_hull_plane=torch.as_tensor(plane))
+
+
+def _padded(rows: np.ndarray, n: int) -> np.ndarray:
+    """``rows``, then its first row repeated up to ``n`` rows."""
+    return rows[np.where(np.arange(n) < len(rows), np.arange(n), 0)]
+
+
+def _hull(m: mujoco.MjModel, g: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mesh geom ``g``'s hull: vertices ``(n, 3)`` and merged face planes ``(f, 4)``, geom frame."""
+    mesh = m.geom_dataid[g]
+    verts = m.mesh_vert[m.mesh_vertadr[mesh]:m.mesh_vertadr[mesh] + m.mesh_vertnum[mesh]].astype(np.float64)
+    adr = m.mesh_graphadr[mesh]
+    if adr < 0:
+        raise UnsupportedMJCFError(f"mesh geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r} can collide and MuJoCo "
+                                   "compiled no convex hull for its mesh")
+    numvert, numface = m.mesh_graph[adr:adr + 2]
+    ids = m.mesh_graph[adr + 2 + numvert:adr + 2 + 2 * numvert]
+    start = adr + 2 + 3 * numvert + 3 * numface
+    triangles = m.mesh_graph[start:start + 3 * numface].reshape(-1, 3)
+    if len(ids) > MAX_HULL_VERTICES:
+        mesh_name = name(m, mujoco.mjtObj.mjOBJ_MESH, mesh)
+        raise UnsupportedMJCFError(
+            f"mesh geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r} can collide and its convex hull has {len(ids)} "
+            f"vertices, more than the {MAX_HULL_VERTICES} torchsim collides; give its mesh a smaller hull with "
+            f"<mesh name={mesh_name!r} maxhullvert=\"{MAX_HULL_VERTICES}\"> (MuJoCo then collides that hull too)")
+    return verts[ids], _planes(verts, triangles, verts[ids].mean(0))
+
+
+def _planes(verts: np.ndarray, triangles: np.ndarray, inside: np.ndarray) -> np.ndarray:
+    """Outward planes ``(f, 4)`` of a hull's triangles, coplanar ones (normals and offsets equal within the float32
+    precision MuJoCo keeps mesh vertices in) merged; ``inside``: a point inside the hull."""
+    a, b, c = (verts[triangles[:, i]] for i in range(3))
+    normal = np.cross(b - a, c - a)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    offset = (normal * a).sum(1)
+    flip = np.where((normal * inside).sum(1) > offset, -1.0, 1.0)[:, None]  # the inside point must be below
+    planes = np.concatenate([normal, offset[:, None]], 1) * flip
+    scale = np.abs(verts).max()
+    tolerance = np.array([1e-5, 1e-5, 1e-5, 1e-5 * scale])
+    merged = []
+    for p in planes:
+        if not any((np.abs(p - q) <= tolerance).all() for q in merged):
+            merged.append(p)
+    return np.array(merged)
