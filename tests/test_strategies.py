@@ -103,6 +103,30 @@ def test_strategy_agrees_with_reference(path, method, strategy):
                                  min_move=1e-3)
 
 
+FREE_BODIES = """
+<mujoco>
+  <worldbody>
+    <geom type="plane" size="5 5 0.1"/>
+    <body pos="0 0 0.3"><freejoint/><geom type="box" size="0.1 0.05 0.08"/></body>
+    <body pos="0.5 0 0.3" euler="0 30 0"><freejoint/><geom type="capsule" size="0.05 0.1"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_a_model_of_free_bodies_alone_runs_on_the_kernel():
+    """No hinge or slide anywhere: the step's joint-space rows are empty, and the kernel holds none of them (it
+    used to refuse such a model and fall back to ``loop``)."""
+    sys = torchsim.load_mjcf(FREE_BODIES, dtype=torch.float64)
+    generator = torch.Generator().manual_seed(0)
+    start = torchsim.init(sys, sys.q0.expand(2, -1).clone(),
+                          torch.randn(2, sys.nv, generator=generator, dtype=torch.float64))
+    stepper = torchsim.Stepper(sys, "kernel")
+    ctrl = torch.zeros(STEPS * 5, 2, 0, dtype=torch.float64)  # 0.2 s: both land
+    _check_against_reference("free bodies kernel", sys, stepper, start, ctrl, 2, min_move=0.05)
+    assert stepper.strategy == "kernel"
+
+
 def _check_against_reference(what: str, sys, step, start, ctrl, batch: int, min_move: float) -> None:
     """``step`` from ``start`` under ``ctrl`` against the reference step, within 10x the reference's own spread
     (at least 1e-8), the same envs flagged diverged, and the bodies moving at least ``min_move`` [m]."""

@@ -182,6 +182,10 @@ def _is_mask(node: Node) -> bool:
     return isinstance(val, torch.Tensor) and val.dtype == torch.bool
 
 
+#: The value of a constant without elements: an output with no rows.
+_NO_ROWS = object()
+
+
 class _Lowering:
     """One graph's nodes as statements of a :class:`Program`: each node becomes a statement, a number, a row
     reference or (for an input tensor) a function of the row index."""
@@ -198,9 +202,12 @@ class _Lowering:
         for node in self.graph.graph.nodes:
             if node.op == "get_attr":
                 constant = getattr(self.graph, node.target)
-                if constant.numel() != 1:
+                if constant.numel() == 0:  # an output with no rows (a model without hinges: its hinge rows)
+                    self.value[node] = _NO_ROWS
+                elif constant.numel() != 1:
                     raise Unsupported(f"generated row code holds scalar constants, not {tuple(constant.shape)}")
-                self.value[node] = constant.item()
+                else:
+                    self.value[node] = constant.item()
             elif node.op == "call_function":
                 self.call(node)
             elif node.op == "output":
@@ -211,6 +218,8 @@ class _Lowering:
         """An output's rows in order: stacks (of stacks) of rows, or a single row (a 1-d output)."""
         if isinstance(node, Node) and node.target is aten.stack.default:
             return [row for a in node.args[0] for row in self.rows_of(a)]
+        if isinstance(node, Node) and self.value[node] is _NO_ROWS:
+            return []
         return [self.arg(node)]
 
     def arg(self, a):
@@ -224,6 +233,10 @@ class _Lowering:
 
     def call(self, node) -> None:
         target, args = node.target, node.args
+        value = node.meta.get("val")
+        if isinstance(value, torch.Tensor) and value.numel() == 0:  # made from, or as, a tensor with no rows
+            self.value[node] = _NO_ROWS
+            return
         if target in (aten.sym_size.int, aten.stack.default):
             return
         if target is aten.view.default and args[0].op == "placeholder":  # an input as (rows, B)

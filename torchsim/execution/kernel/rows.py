@@ -422,9 +422,17 @@ def _probe(x: torch.Tensor | None) -> torch.Tensor | None:
 def _batch_sizes_symbolic(graph: GraphModule, args: list) -> None:
     """Replace ``TRACE_BATCH`` in the size arguments of ``graph``'s ops (views, expands, fills) by the batch size
     of its first ``per_env`` input, read when the graph runs."""
-    for node in graph.graph.nodes:
-        if node.op == "get_attr" and TRACE_BATCH in getattr(graph, node.target).shape:
-            raise Unsupported("row graphs cannot hold a constant with a batch axis (one value per env)")
+    for node in list(graph.graph.nodes):
+        constant = getattr(graph, node.target) if node.op == "get_attr" else None
+        if isinstance(constant, torch.Tensor) and TRACE_BATCH in constant.shape:
+            if constant.numel():
+                raise Unsupported("row graphs cannot hold a constant with a batch axis (one value per env)")
+            # an empty one (a model without hinges has no hinge rows): one env's, expanded to the batch's size when
+            # the graph runs
+            setattr(graph, node.target, constant[..., :1].clone())
+            with graph.graph.inserting_after(node):
+                empty = graph.graph.call_function(aten.expand.default, (node, list(constant.shape)))
+            node.replace_all_uses_with(empty, delete_user_cb=lambda user: user is not empty)
     first = next((i for i, x in enumerate(args) if per_env(x)), None)
     if first is None:  # a batch of one env: nothing to replace
         return
