@@ -18,7 +18,7 @@ Which types are computed, and why the others are not: ``torchsim.io_mjcf.sensors
 
 import torch
 
-from torchsim import lanes, spatial, tendons
+from torchsim import actuators, lanes, spatial, tendons
 from torchsim.io_mjcf.sensors import FRAME_KINDS, SUBTREE_KINDS
 from torchsim.io_mjcf.subset import UnsupportedMJCFError
 from torchsim.kinematics import _addresses, with_world
@@ -131,29 +131,6 @@ def _subtree_values(sys: System, frames: _Frames, group: SensorGroup) -> torch.T
     return per_row(spin + orbit).index_select(-2, group.obj)
 
 
-def actuator_forces(sys: System, q: torch.Tensor, qd: torch.Tensor, ctrl: torch.Tensor) -> torch.Tensor:
-    """MuJoCo's ``actuator_force`` ``(U, B)`` at dof coordinates ``q, qd (D, B)`` (lanes) and controls ``ctrl
-    (U, B)``, as ``torchsim.actuators.dof_forces`` applies it: ``gain ctrl + b0 + b1 length + b2 velocity``
-    (:func:`actuator_coordinates`), ``ctrl`` and the force clamped where limited."""
-    length, velocity = actuator_coordinates(sys, q, qd)
-    lo, hi = lanes.param(sys.act_ctrl_range, 2).unbind(-2)
-    ctrl = torch.where(lanes.param(sys.act_ctrl_limited, 1), torch.minimum(torch.maximum(ctrl, lo), hi), ctrl)
-    b0, b1, b2 = lanes.param(sys.act_bias, 2).unbind(-2)
-    force = lanes.param(sys.act_gain, 1) * ctrl + b0 + b1 * length + b2 * velocity
-    f_lo, f_hi = lanes.param(sys.act_force_range, 2).unbind(-2)
-    return torch.where(lanes.param(sys.act_force_limited, 1), torch.minimum(torch.maximum(force, f_lo), f_hi), force)
-
-
-def actuator_coordinates(sys: System, q: torch.Tensor, qd: torch.Tensor):
-    """MuJoCo's ``actuator_length`` and ``actuator_velocity`` ``(U, B)`` at dof coordinates ``q, qd (D, B)``."""
-    gear = lanes.param(sys.act_gear, 1)
-    act_dof = sys.act_dof.clamp_min(0)  # -1: tendon transmission
-    joint = [x.index_select(-2, act_dof) for x in (q, qd)]
-    if sys.act_on_tendons:  # static: a model without tendon actuators may have no tendons to index
-        joint = [tendons.actuator_coordinates(sys, j, tendons.lengths(sys, x)) for j, x in zip(joint, (q, qd))]
-    return tuple(gear * j for j in joint)
-
-
 def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -> torch.Tensor:
     """``sensordata (nsensordata, B)`` (lanes) with the slots of ``groups`` filled in and the others NaN."""
     batch = state.q.shape[0]
@@ -165,7 +142,7 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
             raise ValueError(f"the {needs_ctrl[0].kind} sensors read actuator forces, which depend on the "
                              "controls: pass ctrl (B, nu)")
         check(sys, "ctrl", ctrl, sys.nu, batch)
-        force = actuator_forces(sys, q_dof, qd_dof, lanes.to_lanes(ctrl))
+        force = actuators.forces(sys, *actuators.coordinates(sys, q_dof, qd_dof), lanes.to_lanes(ctrl))
     frames = _Frames(sys, state) if any(g.kind in FRAME_KINDS + SUBTREE_KINDS for g in groups) else None
     data = q.new_full((sys.nsensordata, batch), float("nan"))
     for group in groups:
@@ -179,7 +156,7 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
         elif kind in ("tendonpos", "tendonvel"):
             values = tendons.lengths(sys, q_dof if kind == "tendonpos" else qd_dof).index_select(0, group.obj)[None]
         elif kind in ("actuatorpos", "actuatorvel"):
-            values = actuator_coordinates(sys, q_dof, qd_dof)[kind == "actuatorvel"].index_select(0, group.obj)[None]
+            values = actuators.coordinates(sys, q_dof, qd_dof)[kind == "actuatorvel"].index_select(0, group.obj)[None]
         elif kind == "actuatorfrc":
             values = force.index_select(0, group.obj)[None]
         elif kind == "jointactuatorfrc":
