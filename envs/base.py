@@ -328,7 +328,7 @@ class TorchsimEnv(EnvBase):
         unknown = set(scales) - set(PHYSICS_PARAMS)
         if unknown:
             raise ValueError(f"unknown physics parameter(s) {sorted(unknown)}; expected some of {PHYSICS_PARAMS}")
-        b = self.base_sys
+        b = self.base_sys.replace(mocap_pos=self.sys.mocap_pos, mocap_quat=self.sys.mocap_quat)  # set_mocap's stay
         s = {k: torch.as_tensor(scales.get(k, 1.0), dtype=b.dtype, device=self.device).expand(self.batch_size)
              for k in PHYSICS_PARAMS}
         for name, scale in s.items():
@@ -341,6 +341,25 @@ class TorchsimEnv(EnvBase):
             act_bias=b.act_bias * s["actuator_gain_scale"][:, None, None],
             contact_groups=tuple(g._replace(friction=g.friction * s["friction_scale"][:, None])
                                  for g in b.contact_groups)))
+
+    def set_mocap(self, pos=None, quat=None) -> None:
+        """Per-env poses of the model's ``M`` mocap bodies, the targets their welds pull bodies to: ``pos``
+        ``(num_envs, M, 3)`` [m] and ``quat`` ``(num_envs, M, 4)`` (``wxyz``, normalised as MuJoCo normalises
+        ``mocap_quat``), world frame, as MuJoCo's ``mocap_pos`` and ``mocap_quat``; one left out keeps its values.
+        They are inputs of the compiled step (moving them rebuilds nothing), and ``set_physics`` keeps them."""
+        sys, values = self.sys, {}
+        for name, value, width in (("mocap_pos", pos, 3), ("mocap_quat", quat, 4)):
+            if value is None:
+                continue
+            value = torch.as_tensor(value, dtype=sys.dtype, device=self.device)
+            shape = (*self.batch_size, sys.mocap_pos.shape[-2], width)
+            if value.shape != shape:
+                raise ValueError(f"set_mocap: {name} must have shape {shape} (envs, mocap bodies, {width}), got "
+                                 f"{tuple(value.shape)}")
+            if not bool(torch.isfinite(value).all()):
+                raise ValueError(f"set_mocap: {name} must be finite")
+            values[name] = value / value.norm(dim=-1, keepdim=True) if name == "mocap_quat" else value
+        self.stepper = self.stepper.for_system(sys.replace(**values))
 
     def episode_state(self) -> dict:
         """The running episodes, as tensors: physics state, task, step counts, the start states drawn ahead for

@@ -15,6 +15,7 @@ from torchsim import pipeline, spatial, welds
 from torchsim.execution.kernel import emit_cuda
 from torchsim.execution.kernel.step import StepKernel
 from models import F64
+from torchsim.envs.base import TorchsimEnv
 
 # every kind of side: bodies with a COM away from their frame, a fused child, the world, a mocap body and a jointless
 # child of it, sites; relpose and torquescale
@@ -311,3 +312,45 @@ def test_skin_is_ignored_with_one_warning():
     skin = [w for w in caught if "<skin>" in str(w.message)]
     assert len(skin) == 1 and "no physics" in str(skin[0].message)
     assert sys.num_bodies == 1
+
+
+class _ArmEnv(TorchsimEnv):
+    """The ``ARM`` scene as an env (a yaw motor, so the action spec is not empty), observing the gripper."""
+
+    frame_skip = 10  # 20 ms
+    observation_size = 3
+    named_bodies = ("gripper",)
+    noise_q = noise_qd = ("uniform", 0.0)
+
+    def _model_xml(self) -> str:
+        return ARM.replace("</mujoco>", '<actuator><motor joint="yaw" gear="0.1"/></actuator></mujoco>')
+
+    def _observation(self, state, ctrl):
+        return self.mj_body_positions(state)[:, 0]
+
+    def _reward(self, before, after, ctrl):
+        return torch.zeros_like(after.q[:, 0])
+
+    def _terminated(self, state):
+        return torch.zeros_like(state.diverged)
+
+
+def test_an_env_drives_each_envs_gripper_to_its_own_mocap_target():
+    """``set_mocap`` gives each env its target; the welded grippers settle at them (the weld's sag under the arm's
+    weight is ~0.1 mm here, see the arm test), and ``set_physics`` afterwards keeps the targets."""
+    env = _ArmEnv(2, dtype=F64)
+    yaw, pitch = torch.tensor([0.15, -0.2], dtype=F64), torch.tensor([0.3, -0.2], dtype=F64)
+    upper = torch.stack([0.2 * yaw.cos(), 0.2 * yaw.sin(), torch.full_like(yaw, 0.5)], -1)  # reachable poses
+    targets = (upper + 0.2 * torch.stack([pitch.cos() * yaw.cos(), pitch.cos() * yaw.sin(), -pitch.sin()], -1))[:, None]
+    level = torch.stack([(yaw / 2).cos(), 0 * yaw, 0 * yaw, (yaw / 2).sin()], -1)[:, None]  # the wrist keeps it level
+    env.set_mocap(pos=targets, quat=level)
+    env.set_physics(mass_scale=torch.tensor([1.0, 1.2]))
+    assert torch.equal(env.sys.mocap_pos, targets)
+    td = env.reset()
+    for _ in range(25):  # 0.5 s
+        td = env.step_mdp(env.step(td.set("action", torch.zeros(2, 1, dtype=F64))))
+    gripper = td["observation"]
+    assert (gripper - targets[:, 0]).norm(dim=-1).max() < 5e-4  # measured 0.09 and 0.12 mm
+    assert (gripper[0] - gripper[1]).norm() > 0.1  # each env its own target
+    with pytest.raises(ValueError, match=r"mocap_pos must have shape \(2, 1, 3\)"):
+        env.set_mocap(pos=targets[0])
