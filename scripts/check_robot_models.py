@@ -15,17 +15,14 @@ The wheels are downloaded (``pip download --no-deps``) into ``--cache`` and unzi
 
 import argparse
 import collections
-import platform
-import sys as _sys
 import time
-from datetime import datetime, timezone
 from pathlib import Path
 
 import mujoco
 import torch
 
 from _docs import replace_section
-from check_third_party import DOCS, ROOT, check, fetch, fmt, summary, table
+from check_third_party import DOCS, ROOT, check, fetch, progress_line, provenance, summary, table
 
 SECTION = "## Robot models (issue 53)"
 # distribution -> (default version, folder searched inside the wheel)
@@ -93,14 +90,10 @@ def main():
         row = check(dist, path, args.budget) | dict(model=name, key=(dist, name))
         models[row["key"]] = model
         rows.append(row)
-        print(f"{dist:18s} {name[:50]:50s} {row['status']:8s} {row['verdict']:4s} ts {fmt(row['ts'])} "
-              f"mj {fmt(row['mj'])} {row['time']:6.1f} s  {row['detail'][:100]}", flush=True)
+        print(progress_line(row), flush=True)
     total = time.perf_counter() - t0
-    cmd = " ".join(["OMP_NUM_THREADS=1 python scripts/check_robot_models.py", *_sys.argv[1:]])
     text = "\n\n".join([
-        f"`{cmd}` ({datetime.now(timezone.utc):%Y-%m-%d}, 2-core AMD EPYC VM, CPU, float64; "
-        f"{', '.join(f'{d} {versions[d]}' for d in args.packages)}, MuJoCo {mujoco.__version__}, "
-        f"torch {torch.__version__}, Python {platform.python_version()}; {total:.0f} s in all). Model set and "
+        provenance("check_robot_models.py", {d: versions[d] for d in args.packages}, total) + " Model set and "
         "counts: the script's docstring; rollout and verdict: `scripts/check_third_party.py`'s (each torchsim "
         f"rollout cut after {args.budget:g} s, the steps column says where).",
         counts(rows, models, files, args.packages), summary(rows), table(rows)])

@@ -176,6 +176,20 @@ def check(source: str, path: Path, budget: float) -> dict:
     return row | dict(time=time.perf_counter() - t0)
 
 
+def progress_line(r: dict) -> str:
+    """A checked model's row as one console line."""
+    return (f"{r['source']:18s} {r['model'][:50]:50s} {r['status']:8s} {r['verdict']:4s} ts {fmt(r['ts'])} "
+            f"mj {fmt(r['mj'])} soft {fmt(r['soft'])} {r['soft_verdict']:4s} {r['time']:6.1f} s  {r['detail'][:90]}")
+
+
+def provenance(script: str, versions: dict, total: float) -> str:
+    """How a table was made: the command as run, the date, the machine and the versions."""
+    cmd = " ".join([f"OMP_NUM_THREADS=1 python scripts/{script}", *_sys.argv[1:]])
+    return (f"`{cmd}` ({datetime.now(timezone.utc):%Y-%m-%d}, 2-core AMD EPYC VM, CPU, float64; "
+            f"{', '.join(f'{d} {v}' for d, v in versions.items())}, MuJoCo {mujoco.__version__}, "
+            f"torch {torch.__version__}, Python {platform.python_version()}; {total:.0f} s in all).")
+
+
 def fmt(x: float) -> str:
     return "-" if np.isnan(x) else f"{x:.2e}"
 
@@ -229,17 +243,10 @@ def main():
     rows, t0 = [], time.perf_counter()
     for source, path in paths:
         rows.append(check(source, path, args.budget))
-        r = rows[-1]
-        print(f"{source:10s} {path.stem:26s} {r['status']:8s} {r['verdict']:4s} ts {fmt(r['ts'])} mj {fmt(r['mj'])} "
-              f"soft {fmt(r['soft'])} {r['soft_verdict']:4s} "
-              f"{r['time']:6.1f} s  {r['detail'][:90]}", flush=True)
+        print(progress_line(rows[-1]), flush=True)
     total = time.perf_counter() - t0
-    cmd = " ".join(["OMP_NUM_THREADS=1 python scripts/check_third_party.py", *_sys.argv[1:]])
     text = "\n\n".join([
-        f"`{cmd}` ({datetime.now(timezone.utc):%Y-%m-%d}, 2-core AMD EPYC VM, CPU, float64; "
-        f"{', '.join(f'{d} {v}' for d, v in versions.items())}, MuJoCo {mujoco.__version__}, "
-        f"torch {torch.__version__}, Python {platform.python_version()}; {total:.0f} s in all). Rule, rollout and "
-        "verdict: the script's docstring. "
+        provenance("check_third_party.py", versions, total) + " Rule, rollout and verdict: the script's docstring. "
         "`ts`: torchsim vs MuJoCo at dt/4; `mj`: MuJoCo dt vs dt/4; RMS of qpos over 0.5 s from qpos0 with "
         "N(0, 0.1) start velocities, zero controls; PASS: ts <= max(2 mj, 1e-3) without contact, max(5 mj, 1e-3) "
         "with contact. `soft`: the same torchsim rollout with `load_mjcf(contact_model=\"soft\")` (MuJoCo's soft "
