@@ -1,29 +1,28 @@
 """Contact geometry of mesh geoms, as their convex hulls (``torchsim.collision`` dispatches here).
 
-A hull is its vertices and face planes in the geom frame (``System.geom_hull_vert``, ``geom_hull_plane``, from
-MuJoCo's compiled hull: ``torchsim.io_mjcf.meshes``), padded to the model's largest hull; padded vertices are
-masked (``hull_real``: their distance is set far apart, so they never touch). The work is static and branch-free:
-every pair tests every (padded) vertex and face plane.
+A hull is its vertices, each vertex's edges and its face planes in the geom frame (``System.geom_hull_vert``,
+``geom_hull_edge``, ``geom_hull_plane``, from MuJoCo's compiled hull: ``torchsim.io_mjcf.meshes``), padded to the
+model's largest hull; padded vertices are masked (``geom_hull_real``: their distance is set far apart, so they never
+touch). The work is static and branch-free: every pair tests every (padded) vertex, face plane and axis.
 
 The distance of a point from a hull is taken as its largest face-plane distance, ``max_f (n_f . x - d_f)``, and
 the normal as that face's (an even blend of the faces that tie). Inside the hull this is exact (the nearest face).
 Outside it is exact only where the point's nearest hull feature is a face; nearer an edge or vertex it is less than
-the true distance (the distance to the face's plane, not to the face): down to ``cos`` of half the angle between
-the adjoining faces' normals times the true distance in the plane across an edge, and to 0 (a contact reported
-touching) where a point lies just past a vertex at a sharp corner. With margin 0 only the face planes' distances
-matter where the geoms touch, so a pair may report a contact up to that gap early near a sharp edge or corner,
-never miss one (module ``test_mesh_contacts`` measures it).
+the true distance (the distance to the face's plane, not to the face), down to 0 (a contact reported touching)
+where a point lies just past a sharp corner: a pair may report a contact early near an edge or corner, never miss
+one. ``tests/test_mesh_contacts.py`` measures it against MuJoCo's ``mj_geomDistance``.
 
 Pairs (``a`` the lower-ranked geom, normals from ``b`` towards ``a``; ``V`` the model's largest hull's vertices):
 - mesh-plane: every hull vertex against the plane, exact (``V`` points);
 - sphere-mesh: the centre against the faces, minus the radius (1 point);
 - capsule-mesh: spheres at both ends of the segment and at its point deepest against the faces, found by
   ``SEGMENT_ITERATIONS`` bisections on the slope of the (convex) face distance along the segment (3 points);
-- box-mesh: the box's 8 corners against the hull's faces, and the hull's vertices against the box (exact distance,
-  ``collision._point_box``) (``8 + V`` points);
-- mesh-mesh: each hull's vertices against the other's faces (``2 V`` points).
-Box-mesh and mesh-mesh test vertices against faces only, so edge-edge crossings (two hulls whose edges cross with
-no vertex of either inside the other) are missed, as box-box misses them.
+- box-mesh: the box's 8 corners against the hull's faces, the hull's vertices against the box (exact distance,
+  ``collision._point_box``) and the separating-axis contact (:func:`_separation`) (``9 + V`` points);
+- mesh-mesh: each hull's vertices against the other's faces, and the separating-axis contact (``1 + 2 V``).
+The vertices alone miss edge-edge crossings (no vertex of either inside the other); the separating-axis contact
+finds them, over the face normals and the cross products of the edges at the support vertices
+(``EDGE_ROUNDS`` rounds), never too shallow.
 """
 
 import torch
@@ -31,6 +30,8 @@ import torch
 from torchsim import lanes, spatial
 
 SEGMENT_ITERATIONS = 10
+EDGE_ROUNDS = 2  #: rounds of edge-pair axes, each at the support vertices along the best axis so far
+TIE_BREAK = 1e-12  # [m] per vertex index, far below any distance that matters
 #: The distance [m] given to padded hull vertices: far apart, so they never touch (depth = margin - distance < 0).
 PADDING_DISTANCE = 1.0
 
@@ -83,10 +84,11 @@ def _masked(dist, real):
 
 
 def hulls(sys, geoms):
-    """The hulls of ``geoms (P,)`` in lanes: vertices ``(3, P, V, 1)``, their mask ``(P, V, 1)`` and face planes
-    ``(4, P, F, 1)``."""
+    """The hulls of ``geoms (P,)`` in lanes: vertices ``(3, P, V, 1)``, their mask ``(P, V, 1)``, the edges from
+    each vertex ``(3, P, V, D, 1)`` and face planes ``(4, P, F, 1)``."""
     return (lanes.param(sys.geom_hull_vert, 2, 1).index_select(-3, geoms),
             lanes.param(sys.geom_hull_real, 2).index_select(-3, geoms),
+            lanes.param(sys.geom_hull_edge, 3, 1).index_select(-4, geoms),
             lanes.param(sys.geom_hull_plane, 2, 1).index_select(-3, geoms))
 
 
@@ -95,25 +97,96 @@ def pair_contacts(kind, pa, rot_a, sa, hull_a, pb, rot_b, sb, hull_b, box_corner
     ``(3, P, 1)`` and :func:`hulls` (a non-mesh side's unused); ``box_corners``, ``point_box``: the box helpers of
     ``torchsim.collision``. Returns point, normal ``(3, P, K, B)`` and distance ``(P, K, B)``."""
     if kind == "mesh_plane":
-        vert_a, real_a, _ = hull_a
+        vert_a, real_a, _, _ = hull_a
         pts, normal = hull_vertices(pa, rot_a, vert_a), rot_b[:, -1].unsqueeze(-2)  # the plane's z axis
         dist = spatial.dot(pts - pb.unsqueeze(-2), normal)
         return pts - 0.5 * normal * dist, normal.expand_as(pts), _masked(dist, real_a)
     if kind == "sphere_mesh":
-        return _against_hull(pa.unsqueeze(-2), sa[0].unsqueeze(-2), pb, rot_b, hull_b[2])
+        return _against_hull(pa.unsqueeze(-2), sa[0].unsqueeze(-2), pb, rot_b, hull_b[3])
     if kind == "capsule_mesh":
         half = rot_a[:, -1] * sa[1]
         p0, p1 = pa - half, pa + half
-        deepest = _deepest_on_segment(p0, p1, pb, rot_b, hull_b[2])
-        return _against_hull(torch.stack((p0, p1, deepest), -2), sa[0].unsqueeze(-2), pb, rot_b, hull_b[2])
-    vert_b, real_b, plane_b = hull_b
-    verts_b = hull_vertices(pb, rot_b, vert_b)
+        deepest = _deepest_on_segment(p0, p1, pb, rot_b, hull_b[3])
+        return _against_hull(torch.stack((p0, p1, deepest), -2), sa[0].unsqueeze(-2), pb, rot_b, hull_b[3])
+    vert_b, real_b, edge_b, plane_b = hull_b
+    side_b = _world_hull(pb, rot_b, vert_b, real_b, edge_b, plane_b)
     if kind == "box_mesh":
-        pt_a, n_a, d_a = _against_hull(box_corners(pa, rot_a, sa), 0.0, pb, rot_b, plane_b)
-        pt_b, n_b, d_b = point_box(verts_b, 0.0, pa.unsqueeze(-2), rot_a.unsqueeze(-2), sa.unsqueeze(-2))
+        axes = rot_a.movedim(1, -2)  # (3, P, 3, B): the box's edge directions, the same at every corner
+        side_a = (box_corners(pa, rot_a, sa), 1.0, axes.unsqueeze(-3), torch.cat((axes, -axes), -2))
+        pt_a, n_a, d_a = _against_hull(side_a[0], 0.0, pb, rot_b, plane_b)
+        pt_b, n_b, d_b = point_box(side_b[0], 0.0, pa.unsqueeze(-2), rot_a.unsqueeze(-2), sa.unsqueeze(-2))
     else:  # mesh_mesh
-        vert_a, real_a, plane_a = hull_a
-        pt_a, n_a, d_a = _against_hull(hull_vertices(pa, rot_a, vert_a), 0.0, pb, rot_b, plane_b)
+        vert_a, real_a, edge_a, plane_a = hull_a
+        side_a = _world_hull(pa, rot_a, vert_a, real_a, edge_a, plane_a)
+        pt_a, n_a, d_a = _against_hull(side_a[0], 0.0, pb, rot_b, plane_b)
         d_a = _masked(d_a, real_a)
-        pt_b, n_b, d_b = _against_hull(verts_b, 0.0, pa, rot_a, plane_a)
-    return torch.cat((pt_a, pt_b), -2), torch.cat((n_a, -n_b), -2), torch.cat((d_a, _masked(d_b, real_b)), -2)
+        pt_b, n_b, d_b = _against_hull(side_b[0], 0.0, pa, rot_a, plane_a)
+    pt_s, n_s, d_s = _separation(side_a, side_b)
+    return (torch.cat((pt_a, pt_b, pt_s), -2), torch.cat((n_a, -n_b, n_s), -2),
+            torch.cat((d_a, _masked(d_b, real_b), d_s), -2))
+
+
+def _world_hull(pos, rot, vert, real, edge, plane):
+    """A hull in the world for :func:`_separation`: vertices ``(3, P, V, B)``, 1 where a vertex is real and 0 at
+    padding ``(P, V, 1)``, each vertex's edges ``(3, P, V, D, B)`` and the outward face normals ``(3, P, F, B)``."""
+    return (hull_vertices(pos, rot, vert), real.to(vert.dtype), spatial.matvec(rot[..., None, None, :], edge),
+            spatial.matvec(rot.unsqueeze(-2), plane[:3]))
+
+
+def _separation(side_a, side_b):
+    """The separating-axis test as one contact (point, normal b->a ``(3, P, 1, B)``, distance ``(P, 1, B)``) for
+    hulls (or a box) ``side_a``, ``side_b`` (:func:`_world_hull`). The separation ``sep(n) = min_a a.n - max_b b.n``
+    is a lower bound on the signed distance for every unit ``n``, so its maximum over some axes finds every
+    overlap, edge-edge crossings too, never too shallow. The axes: both hulls' face normals, then the cross
+    products of the edges at the two support vertices along the best of those (both ways), where an edge-edge
+    contact lies. Exact where the deepest overlap (or the gap) is along a face normal or such an edge pair's;
+    short (too deep, or touching early) by the gap to an edge pair elsewhere. The point is midway across the gap
+    from the support point of the side whose face gave the normal, or between the two support points for an edge
+    pair's (an even blend where axes tie)."""
+    (verts_a, real_a, edges_a, faces_a), (verts_b, real_b, edges_b, faces_b) = side_a, side_b
+    faces = torch.cat((-faces_a, faces_b), -2)  # (3, P, Fa + Fb, B), each from b towards a
+    normal, best, chosen = _best_axis(verts_a, verts_b, faces)
+    share_a, share_b = chosen.split([faces_a.shape[-2], faces_b.shape[-2]], -2)  # the faces' shares in the normal
+    share_a, share_b = share_a.sum(-2), share_b.sum(-2)
+    for _ in range(EDGE_ROUNDS):
+        edge_a = (edges_a * _extreme(verts_a, real_a, normal, -1.0, one=True).unsqueeze(-2)).sum(-3)  # (3, P, D, B)
+        edge_b = (edges_b * _extreme(verts_b, real_b, normal, 1.0, one=True).unsqueeze(-2)).sum(-3)
+        cross = spatial.cross(edge_a.unsqueeze(-2), edge_b.unsqueeze(-3)).flatten(-3, -2)  # (3, P, Da Db, B)
+        square = spatial.dot(cross, cross)
+        # nearly parallel edges (within 1e-3 rad) give no axis: the normal so far instead (every axis must be unit)
+        parallel = square <= 1e-6 * (spatial.dot(edge_a, edge_a).amax(-2) * spatial.dot(edge_b, edge_b).amax(-2)
+                                     ).unsqueeze(-2)
+        cross = torch.where(parallel, normal.unsqueeze(-2), cross * torch.rsqrt(square.clamp_min(1e-30)))
+        edge_normal, edge_best, _ = _best_axis(verts_a, verts_b, torch.cat((cross, -cross), -2))
+        better = edge_best > best
+        normal = torch.where(better, edge_normal, normal)
+        share_a, share_b = (torch.where(better, 0.0, share) for share in (share_a, share_b))
+        best = torch.maximum(edge_best, best)
+    low_a = (verts_a * _extreme(verts_a, real_a, normal, -1.0)).sum(-2)
+    high_b = (verts_b * _extreme(verts_b, real_b, normal, 1.0)).sum(-2)
+    best = spatial.dot(low_a - high_b, normal)  # of the blended normal where axes tie
+    point = (share_b * (low_a - 0.5 * best * normal) + share_a * (high_b + 0.5 * best * normal)
+             + (1 - share_a - share_b) * 0.5 * (low_a + high_b))
+    return point.unsqueeze(-2), normal.unsqueeze(-2), best.unsqueeze(-2)
+
+
+def _best_axis(verts_a, verts_b, axes):
+    """The axis of ``axes (3, P, N, B)`` (unit, b towards a) with the largest ``sep`` (an even blend where axes
+    tie), that ``sep (P, B)`` and each axis's share in the axis ``(P, N, B)``."""
+    sep = (spatial.dot(verts_a.unsqueeze(-3), axes.unsqueeze(-2)).amin(-2)  # padding repeats a vertex: no change
+           - spatial.dot(verts_b.unsqueeze(-3), axes.unsqueeze(-2)).amax(-2))
+    best = sep.amax(-2)
+    chosen = (sep == best.unsqueeze(-2)).to(sep.dtype)
+    chosen = chosen / chosen.sum(-2, keepdim=True)
+    return spatial.normalize((axes * chosen).sum(-2)), best, chosen
+
+
+def _extreme(verts, real, normal, side, one=False):
+    """Weights ``(P, V, B)`` summing to 1 over the (real) vertices ``(3, P, V, B)`` farthest along
+    ``side * normal (3, P, B)``: an even blend of tied vertices, or with ``one`` the first of them (ties broken by
+    ``TIE_BREAK`` per vertex index: a blend of two vertices' edges would be no edge)."""
+    proj = side * spatial.dot(verts, normal.unsqueeze(-2))
+    if one:
+        proj = proj - TIE_BREAK * torch.arange(verts.shape[-2], dtype=proj.dtype, device=proj.device).unsqueeze(-1)
+    weight = (proj == proj.amax(-2, keepdim=True)).to(proj.dtype) * real
+    return weight / weight.sum(-2, keepdim=True)

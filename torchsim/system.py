@@ -16,8 +16,8 @@ POINTS_PER_PAIR = {
 
 #: Contact points per pair of the kinds with a mesh (``torchsim.collision_mesh``), as (fixed, per vertex of the
 #: model's largest hull): a mesh pair tests every vertex of its (padded) hulls.
-MESH_POINTS_PER_PAIR = {"mesh_plane": (0, 1), "sphere_mesh": (1, 0), "capsule_mesh": (3, 0), "box_mesh": (8, 1),
-                        "mesh_mesh": (0, 2)}
+MESH_POINTS_PER_PAIR = {"mesh_plane": (0, 1), "sphere_mesh": (1, 0), "capsule_mesh": (3, 0), "box_mesh": (9, 1),
+                        "mesh_mesh": (1, 2)}
 
 
 def points_per_pair(kind: str, hull_vertices: int) -> int:
@@ -163,8 +163,9 @@ class System:
         (world frame for static geoms).  geom_size: (G, 3) MuJoCo sizes.  contact_groups: one per shape pair.
         geom_hull_vert: (G, V, 3) [m] each colliding mesh geom's convex hull vertices, geom frame, padded to the
         model's largest hull (``V`` vertices, 0 without colliding meshes; ``torchsim.io_mjcf.meshes``);
-        geom_hull_real: (G, V) false at padding; geom_hull_plane: (G, F, 4) the hull's face planes (outward
-        unit normal, offset [m]), padded by repeating the first.
+        geom_hull_real: (G, V) false at padding; geom_hull_edge: (G, V, D, 3) [m] the edges from each hull vertex
+        to its ``D`` neighbours (padded by repeating the first); geom_hull_plane: (G, F, 4) the hull's face planes
+        (outward unit normal, offset [m]), padded by repeating the first.
         contact_soft: whether contacts are MuJoCo's soft constraint (``load_mjcf(contact_model="soft")``, the
         spring method; static).  Per contact point ``C`` (the order of ``collision.contacts``):
         contact_gains: (C, 2) ``K`` [1/s^2], ``B`` [1/s] from the pair's ``solref``.  contact_solimp: (C, 5).
@@ -325,6 +326,7 @@ class System:
     geom_size: torch.Tensor
     geom_hull_vert: torch.Tensor
     geom_hull_real: torch.Tensor
+    geom_hull_edge: torch.Tensor
     geom_hull_plane: torch.Tensor
     contact_groups: tuple
     contact_soft: bool

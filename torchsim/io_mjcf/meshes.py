@@ -28,18 +28,22 @@ MAX_HULL_VERTICES = 64
 
 def hull_fields(m: mujoco.MjModel, geoms) -> dict:
     """The convex hulls of the mesh geoms among ``geoms`` (those that can collide) in their geom frames:
-    ``geom_hull_vert (G, V, 3)`` [m], ``geom_hull_real (G, V)`` (false at padding) and ``geom_hull_plane (G, F, 4)``
-    (outward unit normal and offset [m]: a point ``x`` is inside where ``n . x <= offset`` for every plane), ``V``
-    and ``F`` the model's largest hull (0 without colliding meshes). Refuses a hull of more than
-    ``MAX_HULL_VERTICES`` vertices by name."""
+    ``geom_hull_vert (G, V, 3)`` [m], ``geom_hull_real (G, V)`` (false at padding), ``geom_hull_edge (G, V, D, 3)``
+    [m] the edges from each vertex to its ``D`` neighbours on the hull (padded by repeating the first) and
+    ``geom_hull_plane (G, F, 4)`` (outward unit normal and offset [m]: a point ``x`` is inside where
+    ``n . x <= offset`` for every plane), ``V``, ``D`` and ``F`` the model's largest (0 without colliding meshes).
+    Refuses a hull of more than ``MAX_HULL_VERTICES`` vertices by name."""
     hulls = {g: _hull(m, g) for g in sorted(set(geoms)) if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH}
-    nvert = max((len(v) for v, _ in hulls.values()), default=0)
-    nplane = max((len(p) for _, p in hulls.values()), default=0)
-    vert, real, plane = np.zeros((m.ngeom, nvert, 3)), np.zeros((m.ngeom, nvert), bool), np.zeros((m.ngeom, nplane, 4))
-    for g, (v, p) in hulls.items():
+    nvert = max((len(v) for v, _, _ in hulls.values()), default=0)
+    ndeg = max((len(row) for _, e, _ in hulls.values() for row in e), default=0)
+    nplane = max((len(p) for _, _, p in hulls.values()), default=0)
+    vert, real = np.zeros((m.ngeom, nvert, 3)), np.zeros((m.ngeom, nvert), bool)
+    edge, plane = np.zeros((m.ngeom, nvert, ndeg, 3)), np.zeros((m.ngeom, nplane, 4))
+    for g, (v, e, p) in hulls.items():
         vert[g], real[g, :len(v)], plane[g] = _padded(v, nvert), True, _padded(p, nplane)
+        edge[g] = _padded(np.stack([_padded(row, ndeg) for row in e]), nvert)
     return dict(geom_hull_vert=torch.as_tensor(vert), geom_hull_real=torch.as_tensor(real),
-                geom_hull_plane=torch.as_tensor(plane))
+                geom_hull_edge=torch.as_tensor(edge), geom_hull_plane=torch.as_tensor(plane))
 
 
 def _padded(rows: np.ndarray, n: int) -> np.ndarray:
@@ -47,8 +51,9 @@ def _padded(rows: np.ndarray, n: int) -> np.ndarray:
     return rows[np.where(np.arange(n) < len(rows), np.arange(n), 0)]
 
 
-def _hull(m: mujoco.MjModel, g: int) -> tuple[np.ndarray, np.ndarray]:
-    """Mesh geom ``g``'s hull: vertices ``(n, 3)`` and merged face planes ``(f, 4)``, geom frame."""
+def _hull(m: mujoco.MjModel, g: int) -> tuple[np.ndarray, list, np.ndarray]:
+    """Mesh geom ``g``'s hull: vertices ``(n, 3)``, each one's edges to its neighbours (``n`` arrays ``(k, 3)``)
+    and merged face planes ``(f, 4)``, geom frame."""
     mesh = m.geom_dataid[g]
     verts = m.mesh_vert[m.mesh_vertadr[mesh]:m.mesh_vertadr[mesh] + m.mesh_vertnum[mesh]].astype(np.float64)
     adr = m.mesh_graphadr[mesh]
@@ -65,7 +70,12 @@ def _hull(m: mujoco.MjModel, g: int) -> tuple[np.ndarray, np.ndarray]:
             f"mesh geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r} can collide and its convex hull has {len(ids)} "
             f"vertices, more than the {MAX_HULL_VERTICES} torchsim collides; give its mesh a smaller hull with "
             f"<mesh name={mesh_name!r} maxhullvert=\"{MAX_HULL_VERTICES}\"> (MuJoCo then collides that hull too)")
-    return verts[ids], _planes(verts, triangles, verts[ids].mean(0))
+    neighbours = {int(i): set() for i in ids}
+    for tri in triangles.tolist():
+        for k in range(3):
+            neighbours[tri[k]] |= {tri[k - 1], tri[k - 2]}
+    edges = [verts[sorted(neighbours[int(i)])] - verts[i] for i in ids]
+    return verts[ids], edges, _planes(verts, triangles, verts[ids].mean(0))
 
 
 def _planes(verts: np.ndarray, triangles: np.ndarray, inside: np.ndarray) -> np.ndarray:
