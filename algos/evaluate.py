@@ -1,7 +1,8 @@
 """Evaluate (and render) a trained policy: ``python -m torchsim.evaluate checkpoint=<run>/checkpoints/last.pt
-[episodes=16] [max_steps=N] [video=true] [device=cpu] [seed=N] [physics=torchsim|mujoco]``.
+[episodes=N] [max_steps=N] [video=true] [device=cpu] [seed=N] [physics=torchsim|mujoco]``.
 
-Prints the deterministic policy's mean return and episode length over ``episodes`` envs (and, for goal-reaching
+Prints the deterministic policy's mean return and episode length over ``episodes`` envs (default: as many as the
+run's own evaluations, ``eval.episodes``) (and, for goal-reaching
 tasks, the success rate and median final goal distance; for navigation, success rate and SPL on the held-out
 layouts of ``env.eval_split``); ``seed`` fixes the episodes' start states (a run's own evaluations use its
 ``eval.seed``); ``video=true`` writes ``eval.gif`` of env 0 next to the checkpoint's run dir (for navigation: the
@@ -17,7 +18,7 @@ from omegaconf import OmegaConf
 
 from torchsim.algos.common import evaluate, load_checkpoint, load_policy, make_env, video
 
-DEFAULTS = {"checkpoint": "???", "episodes": 16, "max_steps": None, "video": False, "device": "cpu", "seed": None,
+DEFAULTS = {"checkpoint": "???", "episodes": None, "max_steps": None, "video": False, "device": "cpu", "seed": None,
             "physics": None}
 
 
@@ -29,7 +30,7 @@ def main(argv: list[str]) -> dict:
     cfg = OmegaConf.create(ckpt["cfg"])
     trained_on = cfg.get("physics", "torchsim")
     cfg.physics = args.physics or trained_on
-    env = make_env(cfg, args.episodes, args.device)
+    env = make_env(cfg, args.episodes or cfg.eval.episodes, args.device)
     actor = load_policy(ckpt, env, args.device)
     ev = evaluate(env, actor, args.max_steps or cfg.eval.max_steps, record=args.video, seed=args.seed)
     result = {"env": cfg.env.name, "algo": cfg.algo.name, "env_steps_trained": ckpt["counters"]["env_steps"],

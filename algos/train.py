@@ -59,6 +59,17 @@ def run(cfg: DictConfig, out_dir) -> Run:
         ranks.close()
 
 
+def tuned_settings(cfg: DictConfig) -> str:
+    """Which per-pair settings the composed config holds: the tuned file for ``cfg``'s algo and env, or that there
+    is none (the config's defaults list takes it where it exists, silently)."""
+    name = f"{cfg.algo.name}_{cfg.env.name}"
+    tuned = pathlib.Path(CONFIG_DIR, "tuned", f"{name}.yaml")
+    if tuned.exists():
+        return f"settings: algos/configs/tuned/{name}.yaml over algo/{cfg.algo.name}.yaml and env/{cfg.env.name}.yaml"
+    return (f"settings: no tuned file for {cfg.algo.name} on {cfg.env.name} (algos/configs/tuned/{name}.yaml): the "
+            f"untuned defaults of algo/{cfg.algo.name}.yaml and env/{cfg.env.name}.yaml")
+
+
 def check_config(cfg: DictConfig) -> None:
     """Refuse settings the run would only trip on later: the iteration counts between progress lines and between
     checkpoints divide the iteration number (0 would stop the first iteration with a ZeroDivisionError)."""
@@ -83,6 +94,7 @@ def prepare(cfg: DictConfig, ranks: Ranks = Ranks()) -> None:
 
 @hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
+    logging.getLogger("torchsim.train").info(tuned_settings(cfg))
     try:
         run(cfg, HydraConfig.get().runtime.output_dir)
     except TrainingDiverged as err:

@@ -1,6 +1,6 @@
 """torchsim's environment suite: TorchRL ``EnvBase`` envs batched over ``num_envs``, and their MJCF assets.
 
-    env = torchsim.envs.make("ant", num_envs=1024)      # names: torchsim.envs.list()
+    env = torchsim.envs.make("ant", num_envs=1024)      # names: torchsim.envs.list(), list("physics"), ...
 """
 
 import builtins
@@ -21,8 +21,8 @@ ENVS = {
     "grasp": Grasp, "fetch": Fetch,
 }
 
-#: Pixel versions of tasks (``torchsim.envs.pixels``): name -> (task, default keyword arguments). Not in
-#: :func:`list` (the state tasks); :func:`make` builds them, its keyword arguments overriding these.
+#: Pixel versions of tasks (``torchsim.envs.pixels``): name -> (task, default keyword arguments); :func:`make`'s
+#: keyword arguments override these.
 #: ``inverted_pendulum_pixels`` also emits the full state as ``privileged_state``, which its recipe's critic reads
 #: instead of the images (the policy sees the images and the proprioception only).
 PIXEL_ENVS = {
@@ -40,14 +40,21 @@ PIXEL_ENVS = {
         render_compile=True)),
 }
 
-#: Navigation tasks (``torchsim.envs.nav``): kinematic agents in procedural layouts, not physics models, so not in
-#: :func:`list` either; :func:`make` builds them (``kwargs`` to the class).
+#: Navigation tasks (``torchsim.envs.nav``): kinematic agents in procedural layouts, not physics models (``kwargs``
+#: to the class).
 NAV_ENVS = {"pointnav": PointNav}
 
 
-def list() -> builtins.list[str]:  # noqa: A001 - the public name asked for: torchsim.envs.list()
-    """Names accepted by :func:`make`."""
-    return builtins.list(ENVS)
+#: The kinds of env :func:`list` names.
+KINDS = {"physics": ENVS, "pixels": PIXEL_ENVS, "navigation": NAV_ENVS}
+
+
+def list(kind: str = "all") -> builtins.list[str]:  # noqa: A001 - the public name asked for: torchsim.envs.list()
+    """Names :func:`make` builds: every one, or those of one ``kind`` (``"physics"``: the MJCF tasks;
+    ``"pixels"``: physics tasks observed through cameras; ``"navigation"``)."""
+    if kind != "all" and kind not in KINDS:
+        raise ValueError(f"unknown kind of env {kind!r}; expected 'all' or one of {builtins.list(KINDS)}")
+    return [name for k, names in KINDS.items() if kind in ("all", k) for name in names]
 
 
 def make(name: str, num_envs: int = 1, device="cpu", **kwargs) -> TorchsimEnv:

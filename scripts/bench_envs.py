@@ -29,7 +29,7 @@ from _timing import allow_recompiles, emit_table, mujoco_rollout_rate, mujoco_st
 
 def parse_args():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--envs", nargs="+", default=torchsim.envs.list(), choices=torchsim.envs.list())
+    p.add_argument("--envs", nargs="+", default=torchsim.envs.list("physics"), choices=torchsim.envs.list("physics"))
     p.add_argument("--batches", nargs="+", type=int, default=[1, 256, 4096])
     p.add_argument("--modes", nargs="+", default=["compiled"], choices=["eager", "compiled"])
     p.add_argument("--steps", type=int, default=5, help="timed env steps per repeat")

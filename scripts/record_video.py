@@ -117,7 +117,7 @@ def bench(env, env_name: str, qpos: np.ndarray, dt: float, width: int, height: i
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--env", default="ant", choices=torchsim.envs.list())
+    p.add_argument("--env", default="ant", choices=torchsim.envs.list("physics"))
     p.add_argument("--policy", default=None, help="a training run's checkpoints/last.pt (default: random actions)")
     p.add_argument("--steps", type=int, default=None, help="env steps (default 200 random, or the episode length)")
     p.add_argument("--seed", type=int, default=0)

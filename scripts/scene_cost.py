@@ -96,7 +96,7 @@ def read_rates(path) -> dict:
 
 def main():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--envs", nargs="+", default=torchsim.envs.list(), choices=torchsim.envs.list())
+    p.add_argument("--envs", nargs="+", default=torchsim.envs.list("physics"), choices=torchsim.envs.list("physics"))
     p.add_argument("--rates", default=None, help="bench_envs.py markdown table with compiled env-steps/s")
     p.add_argument("--out", default=None)
     args = p.parse_args()

@@ -64,7 +64,7 @@ def episode(env, actor, steps: int, on_step=None) -> np.ndarray:
 
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--env", default="ant", choices=torchsim.envs.list(), help="with random actions")
+    p.add_argument("--env", default="ant", choices=torchsim.envs.list("physics"), help="with random actions")
     p.add_argument("--policy", default=None, help="a checkpoint (checkpoints/last.pt) to run")
     p.add_argument("--watch", default=None, help="a training run's directory: reload its last.pt when rewritten")
     p.add_argument("--save", default=None, help="write one episode to this HTML file instead of serving")

@@ -13,7 +13,7 @@ import torchsim.envs as envs
 from torchsim import actuators
 from torchsim.lanes import from_lanes, to_lanes
 
-NAMES = envs.list()
+NAMES = envs.list("physics")
 
 
 def test_list_and_make():

@@ -196,3 +196,10 @@ def test_running_norm_loads_a_vecnorm_checkpoint():
     norm.load_state_dict(old.state_dict())
     torch.testing.assert_close(norm.normalize("observation", x), expected)
     assert norm.observation_count.item() == 64
+
+def test_the_console_names_the_tuned_file_or_its_absence():
+    from torchsim.algos.train import tuned_settings
+
+    assert tuned_settings(config("algo=ppo", "env=ant")) == (
+        "settings: algos/configs/tuned/ppo_ant.yaml over algo/ppo.yaml and env/ant.yaml")
+    assert "no tuned file for sac on fetch" in tuned_settings(config("algo=sac", "env=fetch"))

@@ -57,7 +57,9 @@ def _on_compile_start(args) -> None:
         what = f"the backward pass of {_compiled_names.get(args.compile_id, 'a compiled function')}"
     else:
         what = _compiled_names[args.compile_id] = _compiled_function_name()
-    _in_progress.enter_context(announce(f"{what} (torch.compile {args.compile_id})"))
+    # compile ids read "frame/recompile": a recompile means new input shapes or types for a compiled function
+    again = "" if str(args.compile_id).endswith("/0") else ", again for new inputs"
+    _in_progress.enter_context(announce(f"{what} (torch.compile{again})"))
 
 
 def _on_compile_end(args) -> None:
@@ -72,8 +74,8 @@ _compiled_names: dict[str, str] = {}
 
 def _compiled_function_name() -> str:
     """The name of the function dynamo is compiling (its ``_compile(code, globals, locals, ...)`` frame is on the
-    stack), with the class of its ``self`` where the function has one (a loss's ``forward`` is TorchRL's
-    ``_forward_wrapper.<locals>.new_forward``, which says little alone)."""
+    stack), as a method of the class of its ``self`` where it has one (a loss's ``forward`` is TorchRL's
+    ``_forward_wrapper.<locals>.new_forward``, which says little alone: ``ClipPPOLoss.forward``)."""
     frame = sys._getframe()
     while frame is not None:
         code = frame.f_locals.get("code") if frame.f_code.co_name == "_compile" else None
@@ -81,6 +83,6 @@ def _compiled_function_name() -> str:
             owner = (frame.f_locals.get("locals") or {}).get("self")
             if owner is None or code.co_qualname.startswith(type(owner).__name__ + "."):
                 return code.co_qualname
-            return f"{code.co_qualname} of {type(owner).__name__}"
+            return f"{type(owner).__name__}.{'forward' if code.co_name == 'new_forward' else code.co_name}"
         frame = frame.f_back
     return "a function"
