@@ -42,7 +42,8 @@ SCENE = """
 FLOOR = '<geom name="floor" type="plane" size="2 2 0.1"/>'
 GEOMS = {"tet": 'type="mesh" mesh="tet"', "cube": 'type="mesh" mesh="cube"', "irregular": 'type="mesh" mesh="irregular"',
          "sphere": 'type="sphere" size="0.05"', "capsule": 'type="capsule" size="0.03 0.08"',
-         "box": 'type="box" size="0.1 0.1 0.1"'}
+         "box": 'type="box" size="0.1 0.1 0.1"', "cylinder": 'type="cylinder" size="0.05 0.04"',
+         "ellipsoid": 'type="ellipsoid" size="0.05 0.04 0.03"'}
 ROUNDOFF = 1e-9  # [m] float64 round-off on the same float32 vertices
 
 
@@ -78,15 +79,15 @@ def _compare(xml):
     return sorted(mj, key=lambda c: c[2]), sorted(ours, key=lambda c: c[2]), group.kind
 
 
-def _matched(contact, others):
-    """Whether ``contact`` equals one of ``others`` in point, normal and distance, to round-off."""
-    return any(all(np.abs(np.subtract(x, y)).max() < ROUNDOFF for x, y in zip(contact, other)) for other in others)
+def _matched(contact, others, tol=ROUNDOFF):
+    """Whether ``contact`` equals one of ``others`` in point, normal and distance, within ``tol`` (round-off)."""
+    return any(all(np.abs(np.subtract(x, y)).max() < tol for x, y in zip(contact, other)) for other in others)
 
 
 def test_hull_vertices_and_planes():
-    """The loaded hulls: a cube's 8 corners and its 6 face planes (its 12 triangles merged), a tetrahedron's 4 and
-    4; the irregular mesh's interior point left out. Every hull vertex is on or below every plane and each plane
-    holds at least 3 vertices."""
+    """The loaded hulls: a cube's 8 corners, their edges and its 6 face planes (its 12 triangles merged), a
+    tetrahedron's 4 and 4; the irregular mesh's interior point left out. Every hull vertex is on or below every
+    plane and each plane holds at least 3 vertices."""
     xml = _scene("cube", geom_b="irregular", pos_b="1 0 0")
     sys = torchsim.load_mjcf(xml, dtype=F64)
     vert, real, plane = sys.geom_hull_vert, sys.geom_hull_real, sys.geom_hull_plane
@@ -97,6 +98,10 @@ def test_hull_vertices_and_planes():
         above = vert[g] @ plane[g, :, :3].T - plane[g, :, 3]  # (V, F)
         assert above.max() < 1e-7
         assert ((above[real[g]].abs() < 1e-7).sum(0) >= 3).all()
+    # each cube corner's edges: its 3 cube edges (0.2 m along the axes) and the diagonals the triangles add
+    for corner, edges in zip(vert[0].numpy(), sys.geom_hull_edge[0].numpy()):
+        for edge in -0.2 * np.sign(corner)[:, None] * np.eye(3):
+            assert np.abs(edges - edge).max(1).min() < 1e-6
     tet = torchsim.load_mjcf(_scene("tet"), dtype=F64)
     assert tet.geom_hull_real.sum().item() == 4 and len(tet.geom_hull_plane[1].unique(dim=0)) == 4
 
@@ -154,6 +159,32 @@ def test_edges_crossing(other):
                                   geom_b="cube", euler_b="0 45 0"))
     assert len(mj) == len(ours) == 1
     assert abs(ours[0][2] + 0.005) < 1e-6 and _matched(ours[0], mj)
+
+
+@pytest.mark.parametrize("euler, count", [("90 0 20", 2), ("0 0 0", 4)])
+def test_cylinder_on_a_face(euler, count):
+    """A cylinder sunk 2 mm into the cube mesh's top face, on its side (MuJoCo's 2 contacts, ours the same) or on
+    its cap (4 rim points each, at other angles: the same depth and normal, on the rim)."""
+    mj, ours, kind = _compare(_scene("cylinder", pos_a=f"0.02 0.03 {0.138 if count == 4 else 0.148}",
+                                     euler_a=euler, geom_b="cube"))
+    assert kind == "cylinder_mesh" and len(mj) == len(ours) == count
+    assert all(abs(c[2] + 0.002) < 1e-6 and np.abs(c[1] - [0, 0, 1]).max() < ROUNDOFF for c in ours)
+    if count == 2:  # MuJoCo's side points: 1 um along the axis (its convex solver's tolerance)
+        assert all(_matched(c, mj, tol=1e-6) for c in ours)
+    else:
+        assert all(abs(np.hypot(c[0][0] - 0.02, c[0][1] - 0.03) - 0.05) < 1e-9 for c in ours)
+
+
+def test_tilted_cylinder_on_a_face():
+    """Tilted 3 degrees on its cap: the deepest rim point is 0.04 cos 3 + 0.05 sin 3 below the centre, as deep as
+    MuJoCo's distance (its clipped contact polygon's points lie shallower)."""
+    xml = _scene("cylinder", pos_a="0.02 0.03 0.138", euler_a="3 0 0", geom_b="cube")
+    _, ours, _ = _compare(xml)
+    exact = 0.138 - 0.04 * np.cos(np.radians(3)) - 0.05 * np.sin(np.radians(3)) - 0.1
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    assert abs(ours[0][2] - exact) < 1e-6 and abs(mujoco.mj_geomDistance(m, d, 0, 1, 1.0, None) - exact) < 1e-6
 
 
 def _sampled(geom_a, geom_b, count=300, band=(-0.01, 0.02), seed=0):
@@ -273,8 +304,7 @@ def test_large_hull_refused_by_name():
     assert sys.geom_hull_real.sum().item() == MAX_HULL_VERTICES
 
 
-def test_cylinder_mesh_refused_by_name():
-    xml = _scene("cube", geom_b="box", pos_b="1 0 0").replace('type="box" size="0.1 0.1 0.1"',
-                                                              'type="cylinder" size="0.1 0.1"')
-    with pytest.raises(UnsupportedMJCFError, match="cylinder-mesh contacts are not implemented"):
+def test_ellipsoid_mesh_refused_by_name():
+    xml = _scene("ellipsoid", geom_b="cube", pos_b="1 0 0")
+    with pytest.raises(UnsupportedMJCFError, match="ellipsoid-mesh contacts are not implemented"):
         torchsim.load_mjcf(xml)

@@ -19,7 +19,9 @@ Pairs (``a`` the lower-ranked geom, normals from ``b`` towards ``a``; ``V`` the 
   ``SEGMENT_ITERATIONS`` bisections on the slope of the (convex) face distance along the segment (3 points);
 - box-mesh: the box's 8 corners against the hull's faces, the hull's vertices against the box (exact distance,
   ``collision._point_box``) and the separating-axis contact (:func:`_separation`) (``9 + V`` points);
-- mesh-mesh: each hull's vertices against the other's faces, and the separating-axis contact (``1 + 2 V``).
+- mesh-mesh: each hull's vertices against the other's faces, and the separating-axis contact (``1 + 2 V``);
+- cylinder-mesh: the cylinder's 8 cap rim points against the hull's faces and the hull's vertices against the
+  cylinder (``8 + V``, :func:`_cylinder_hull`).
 The vertices alone miss edge-edge crossings (no vertex of either inside the other); the separating-axis contact
 finds them, over the face normals and the cross products of the edges at the support vertices
 (``EDGE_ROUNDS`` rounds), never too shallow.
@@ -27,7 +29,7 @@ finds them, over the face normals and the cross products of the edges at the sup
 
 import torch
 
-from torchsim import lanes, spatial
+from torchsim import collision_round, lanes, spatial
 
 SEGMENT_ITERATIONS = 10
 EDGE_ROUNDS = 2  #: rounds of edge-pair axes, each at the support vertices along the best axis so far
@@ -110,6 +112,8 @@ def pair_contacts(kind, pa, rot_a, sa, hull_a, pb, rot_b, sb, hull_b, box_corner
         return _against_hull(torch.stack((p0, p1, deepest), -2), sa[0].unsqueeze(-2), pb, rot_b, hull_b[3])
     vert_b, real_b, edge_b, plane_b = hull_b
     side_b = _world_hull(pb, rot_b, vert_b, real_b, edge_b, plane_b)
+    if kind == "cylinder_mesh":
+        return _cylinder_hull(pa, rot_a, sa, side_b, real_b, pb, rot_b, plane_b)
     if kind == "box_mesh":
         axes = rot_a.movedim(1, -2)  # (3, P, 3, B): the box's edge directions, the same at every corner
         side_a = (box_corners(pa, rot_a, sa), 1.0, axes.unsqueeze(-3), torch.cat((axes, -axes), -2))
@@ -124,6 +128,26 @@ def pair_contacts(kind, pa, rot_a, sa, hull_a, pb, rot_b, sb, hull_b, box_corner
     pt_s, n_s, d_s = _separation(side_a, side_b)
     return (torch.cat((pt_a, pt_b, pt_s), -2), torch.cat((n_a, -n_b, n_s), -2),
             torch.cat((d_a, _masked(d_b, real_b), d_s), -2))
+
+
+def _cylinder_hull(pa, rot_a, sa, side_b, real_b, pb, rot_b, plane_b):
+    """A cylinder ``a`` against a hull ``b``: its caps' rim points against the hull's faces, 4 per cap at quarter
+    turns from its deepest along the hull face normal that separates them most (as on a plane: a cylinder rests on
+    a face on its cap or its side), and the hull's vertices against the cylinder (exact). Edge-edge crossings of a
+    rim and a hull edge are missed."""
+    verts_b, _, _, faces_b = side_b
+    # each face normal's separation: the cylinder's lowest rim point along it (its support point is one of the 8)
+    # less the hull's highest vertex
+    rims = collision_round.plane_points("cylinder", pa.unsqueeze(-2), rot_a.unsqueeze(-2), sa.unsqueeze(-2), faces_b)
+    sep = (spatial.dot(rims, faces_b.unsqueeze(-2)).amin(-2)
+           - spatial.dot(verts_b.unsqueeze(-3), faces_b.unsqueeze(-2)).amax(-2))  # (P, F, B)
+    chosen = (sep == sep.amax(-2, keepdim=True)).to(sep.dtype)
+    normal = spatial.normalize((faces_b * chosen).sum(-2))
+    pt_a, n_a, d_a = _against_hull(collision_round.plane_points("cylinder", pa, rot_a, sa, normal), 0.0, pb, rot_b,
+                                   plane_b)
+    pt_b, n_b, d_b = collision_round.point_cylinder(verts_b, 0.0, pa.unsqueeze(-2), rot_a.unsqueeze(-2),
+                                                    sa.unsqueeze(-2))
+    return torch.cat((pt_a, pt_b), -2), torch.cat((n_a, -n_b), -2), torch.cat((d_a, _masked(d_b, real_b)), -2)
 
 
 def _world_hull(pos, rot, vert, real, edge, plane):
