@@ -30,6 +30,9 @@ is harmless):
   ellipsoid-cylinder and either against a box are refused); pairs from ``contype``/``conaffinity``,
   ``<exclude>``, ``<contact><pair>`` and MuJoCo's parent filter. Geoms of other types that can never touch
   anything (``contype``/``conaffinity`` filtered out) only contribute mass and are accepted with a warning.
+- mesh geoms collide as the convex hull MuJoCo compiles for them (``torchsim.io_mjcf.meshes``), with planes,
+  spheres, capsules, cylinders, boxes and meshes (``torchsim.collision_mesh``); a hull of more than 64 vertices is
+  refused by name (MuJoCo's ``maxhullvert`` caps it), as are ellipsoid-mesh pairs.
 - fluid: ``<option density viscosity wind>`` with MuJoCo's inertia-box model (``torchsim.fluid``); geoms with
   ``fluidshape="ellipsoid"`` are refused.
 - sensors: read from the State by ``torchsim.sensor``/``sensordata`` in MuJoCo's ``sensordata`` layout
