@@ -27,6 +27,8 @@ SHAPE_RANK = {"sphere": 0, "capsule": 1, "ellipsoid": 2, "cylinder": 3, "box": 4
 # unit box corners (3, 1, 8, 1): components, then broadcast over pairs, the 8 corners, broadcast over the batch
 _CORNERS = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
                         dtype=torch.float64).T[:, None, :, None]
+#: the 12 edges of a box as pairs of ``_CORNERS`` (first ends, then second ends): corners differing in one sign
+_EDGES = torch.tensor([[i, i | bit] for bit in (4, 2, 1) for i in range(8) if not i & bit]).T
 
 
 class Contacts(NamedTuple):
@@ -109,6 +111,54 @@ def _box_corners(pos, rot, size):
     return pos.unsqueeze(-2) + spatial.matvec(rot.unsqueeze(-2), corners)
 
 
+def _round_box(shape, pa, rot_a, sa, pb, rot_b, sb):
+    """Contacts of ellipsoids or cylinders ``a`` with boxes ``b`` (``collision_round`` gives the other pairs of the
+    round shapes), for poses ``(3, P, B)``, ``(3, 3, P, B)`` and sizes ``(3, P, 1)``.
+
+    The separating normal ``n*`` (``collision_round.separating_normal``) is climbed from the best of the box's face
+    normals, the centre line, the box's normal nearest a's centre, a's nearest the box's centre and, for a cylinder, its
+    axis and the normals to it and each box edge: its separation is the first contact (a lower bound on the signed
+    distance, so it errs deep, never missed; MuJoCo's convex solver finds that maximum), between a's support point
+    along ``-n*`` and the box. An ellipsoid has that one point, as on a plane. A cylinder adds its caps' 4 rim points
+    at quarter turns from the deepest along ``-n*`` (as on a plane) against the box, and the box's 8 corners and
+    the point of each of its 12 edges nearest the cylinder or deepest in it (``collision_round.segment_point``)
+    against the cylinder: exact outside the other geom, inside it measured below its support plane along ``n*``.
+    So a cylinder rests on a cap, its side or a rim, also where a box edge crosses its cap (a cylinder standing
+    half over the edge: the edge's point under the cap closes the support polygon around its centre), and a box
+    rests on a cylinder's cap (29 points)."""
+    a, b = (shape, pa, rot_a, sa), ("box", pb, rot_b, sb)
+    box_normal = _point_box(pa, 0.0, pb, rot_b, sb)[1]
+    own_normal = collision_round.point_round(shape, pb, 0.0, pa, rot_a, sa)[1]  # a's, towards the box's centre
+    cands = [rot_b[:, 0], rot_b[:, 1], rot_b[:, 2], pa - pb, box_normal, -own_normal]
+    if shape == "cylinder":
+        cands += [rot_a[:, 2]] + [spatial.cross(rot_a[:, 2], rot_b[:, k]) for k in range(3)]
+    n_star, sep = collision_round.separating_normal(torch.stack(cands, -2), a, b, climb_best_only=True)
+    # a's support point and the box's are sep apart along n*: the point midway
+    pt_sep = pa - collision_round.offset(shape, rot_a, sa, n_star) - 0.5 * sep * n_star
+    pt_sep, n_sep, d_sep = pt_sep.unsqueeze(-2), n_star.unsqueeze(-2), sep.unsqueeze(-2)
+    if shape == "ellipsoid":
+        return pt_sep, n_sep, d_sep
+    box, cyl = ((x.unsqueeze(-2) for x in y) for y in ((pb, rot_b, sb), (pa, rot_a, sa)))
+    (box_pos, box_rot, box_size), (cyl_pos, cyl_rot, cyl_size) = box, cyl
+    rim = collision_round.plane_points("cylinder", pa, rot_a, sa, n_star)  # (3, P, 8, B)
+    _, n_rim, d_rim = _point_box(rim, 0.0, box_pos, box_rot, box_size)  # out of the box
+    inside = d_rim <= 0
+    d_rim = torch.where(inside, spatial.dot(rim - box_pos, n_sep) - collision_round.width("box", box_rot, box_size,
+                                                                                          n_sep), d_rim)
+    n_rim = torch.where(inside, n_sep, n_rim)
+    corners = _box_corners(pb, rot_b, sb)
+    ends = corners.index_select(-2, _EDGES.to(corners.device).flatten()).unflatten(-2, (2, 12))
+    edge_points = collision_round.segment_point("cylinder", *ends.unbind(-3), cyl_pos, cyl_rot, cyl_size)
+    corners = torch.cat((corners, edge_points), -2)
+    _, n_cor, d_cor = collision_round.point_cylinder(corners, 0.0, cyl_pos, cyl_rot, cyl_size)  # out of the cylinder
+    inside = d_cor <= 0
+    d_cor = torch.where(inside, -spatial.dot(corners - cyl_pos, n_sep) - collision_round.width(
+        "cylinder", cyl_rot, cyl_size, n_sep), d_cor)
+    n_cor = torch.where(inside, -n_sep, n_cor)
+    return (torch.cat((rim - 0.5 * n_rim * d_rim, corners - 0.5 * n_cor * d_cor, pt_sep), -2),
+            torch.cat((n_rim, -n_cor, n_sep), -2), torch.cat((d_rim, d_cor, d_sep), -2))
+
+
 def _pair_contacts(kind, pa, rot_a, sa, pb, rot_b, sb):
     """Contacts of one shape pair for world geom positions ``(3, P, B)``, rotations ``rot_a, rot_b (3, 3, P, B)``
     (only their z columns, ``(3, 1, P, B)``, where the pair has no box, ellipsoid or cylinder) and sizes
@@ -130,6 +180,8 @@ def _pair_contacts(kind, pa, rot_a, sa, pb, rot_b, sb):
         return collision_round.ellipsoid_pair(pa, rot_a, sa, pb, rot_b, sb)
     if kind == "cylinder_cylinder":
         return collision_round.cylinder_pair(pa, rot_a, sa, pb, rot_b, sb)
+    if kind in ("ellipsoid_box", "cylinder_box"):
+        return _round_box(kind[:-4], pa, rot_a, sa, pb, rot_b, sb)
     if kind == "box_box":
         pt_a, n_a, d_a = _point_box(_box_corners(pa, rot_a, sa), 0.0, pb.unsqueeze(-2), rot_b.unsqueeze(-2),
                                     sb.unsqueeze(-2))

@@ -36,8 +36,8 @@ Pairs, with their error against MuJoCo's ``mj_geomDistance`` on random poses fro
   finger.xml's among them): 2 cm apart to 1 cm inside, up to 9.2e-5 m too deep (1.6e-5 m when apart); 1-3 cm
   inside, up to 5.7e-4 m too deep.
 
-Other pairs with an ellipsoid or cylinder (cylinder-box, ellipsoid-cylinder, ellipsoid-box) are refused by the
-loader.
+Cylinder-box and ellipsoid-box pairs (``torchsim.collision._round_box``) climb the same separating normal
+(:func:`separating_normal`, with a box's support function). Ellipsoid-cylinder pairs are refused by the loader.
 """
 
 import torch
@@ -60,8 +60,9 @@ _QUARTERS = torch.tensor([0.0, 0.5, 1.0, 1.5], dtype=torch.float64).view(4, 1) *
 
 
 def _unit_or(d, fallback):
-    """``d`` normalised, or the unit ``fallback`` where ``d`` vanishes."""
-    norm = spatial.safe_norm(d)
+    """``d`` normalised, or the unit ``fallback`` where ``d`` vanishes (shorter than 1e-9: ``safe_norm``'s default
+    floor, 1e-6, would shrink such a ``d`` instead, to a short non-unit vector)."""
+    norm = spatial.safe_norm(d, 1e-30)
     return torch.where(norm > 1e-9, d / norm, fallback)
 
 
@@ -191,8 +192,14 @@ def _curvature(rot, size, n):
 
 
 def _first(mask, dim=-2):
-    """The first true entry of ``mask`` along ``dim``, as a mask (selects without a gather)."""
-    return mask & (mask.cumsum(dim) == 1)
+    """The first true entry of ``mask`` along ``dim``, as a mask (selects without a gather); unrolled over the axis
+    (a small one), as the row tracer of the kernel strategies has no ``cumsum``."""
+    masks = mask.unbind(dim)
+    firsts, seen = [masks[0]], masks[0]
+    for m in masks[1:]:
+        firsts.append(m & ~seen)
+        seen = seen | m
+    return torch.stack(firsts, dim)
 
 
 def _width(rot, size, n):
@@ -211,26 +218,54 @@ def _offset(rot, size, n):
             + size[0] * radial / (spatial.dot(radial, radial) + KINK * KINK).sqrt())
 
 
-def _ascend(n, pa, rot_a, sa, pb, rot_b, sb):
-    """Normals ``n`` turned to raise the separation ``(pa - pb).n - width_a(n) - width_b(n)``, and it: each of
-    ``NORMAL_ITERATIONS`` steps turns along its gradient ``s_a(-n) - s_b(n)`` (support points) by the best of
-    ``_TURNS`` of the step's angle, each also snapped across either axis, or stays; the next angle is twice the one
-    taken, or a tenth. The trials lie on a new axis at -3 (all of them at once)."""
+#: the frame columns across which each shape's support point jumps (ridges of the separation, where its maximum
+#: often lies: a cylinder's side against a rim, a box's edge against anything)
+_RIDGES = {"cylinder": (2,), "box": (0, 1, 2), "ellipsoid": ()}
+
+
+def width(shape, rot, size, n):
+    """Half the width of cylinders, boxes or ellipsoids (all centrally symmetric) along unit ``n``: their support
+    function about their centre."""
+    if shape == "cylinder":
+        return _width(rot, size, n)
+    local = spatial.matvec(spatial.transpose(rot), n)
+    return (size * local.abs()).sum(0) if shape == "box" else spatial.safe_norm(size * local)
+
+
+def offset(shape, rot, size, n):
+    """The support point along unit ``n`` from the centre (``width``'s gradient): a cylinder's (``_offset``), a
+    box's corner with its jumps rounded by ``KINK`` (mid-face along a face normal), an ellipsoid's (smooth)."""
+    if shape == "cylinder":
+        return _offset(rot, size, n)
+    if shape == "ellipsoid":
+        return _support(0.0, rot, size, n)
+    local = spatial.matvec(spatial.transpose(rot), n)
+    return spatial.matvec(rot, size * local / (local * local + KINK * KINK).sqrt())
+
+
+def _ascend(n, a, b):
+    """Normals ``n`` turned to raise the separation ``(pa - pb).n - width_a(n) - width_b(n)`` of shapes ``a, b =
+    (shape, pos, rot, size)``, and it: each of ``NORMAL_ITERATIONS`` steps turns along its gradient ``pa - pb -
+    offset_a(n) - offset_b(n)`` by the best of ``_TURNS`` of the step's angle, each also snapped across either
+    shape's ridges (``_RIDGES``), or stays; the next angle is twice the one taken, or a tenth. The trials lie on a
+    new axis at -3 (all of them at once)."""
+    (shape_a, pa, rot_a, sa), (shape_b, pb, rot_b, sb) = a, b
+
     def sep(n, lead):
-        return spatial.dot(lead(pa - pb), n) - _width(lead(rot_a), lead(sa), n) - _width(lead(rot_b), lead(sb), n)
+        return (spatial.dot(lead(pa - pb), n) - width(shape_a, lead(rot_a), lead(sa), n)
+                - width(shape_b, lead(rot_b), lead(sb), n))
 
     trial_axis = lambda x: x.unsqueeze(-3)  # noqa: E731
-    turns = _TURNS.to(n).repeat(3).view(-1, 1, 1)  # (9, 1, 1): turned, snapped across a, across b
+    ridges = [trial_axis(rot[:, k]) for shape, rot in ((shape_a, rot_a), (shape_b, rot_b)) for k in _RIDGES[shape]]
+    turns = _TURNS.to(n).repeat(1 + len(ridges)).view(-1, 1, 1)  # turned, then snapped across each ridge
     f = sep(n, lambda x: x)
-    angle = torch.full_like(f, NORMAL_TURN)
+    angle = torch.zeros_like(f) + NORMAL_TURN  # not full_like: the row tracer of the kernel strategies has none
     for _ in range(NORMAL_ITERATIONS):
-        grad = pa - pb - _offset(rot_a, sa, n) - _offset(rot_b, sb, n)
-        t = _unit_or(grad - spatial.dot(grad, n) * n, n)
-        turned = trial_axis(n) * torch.cos(angle.unsqueeze(-3) * turns[:3]) + trial_axis(t) * torch.sin(
-            angle.unsqueeze(-3) * turns[:3])
-        # also snapped across either axis: the maximum often lies on such a ridge (a side against a rim)
-        snapped = [_unit_or(turned - spatial.dot(turned, ax) * ax, turned)
-                   for ax in (trial_axis(rot_a[:, 2]), trial_axis(rot_b[:, 2]))]
+        grad = pa - pb - offset(shape_a, rot_a, sa, n) - offset(shape_b, rot_b, sb, n)
+        t = _unit_or(grad - spatial.dot(grad, n) * n, 0.0)  # none at a stationary n: the trials stay there
+        turned = _unit_or(trial_axis(n) * torch.cos(angle.unsqueeze(-3) * turns[:3]) + trial_axis(t) * torch.sin(
+            angle.unsqueeze(-3) * turns[:3]), trial_axis(n))
+        snapped = [_unit_or(turned - spatial.dot(turned, ax) * ax, turned) for ax in ridges]
         trials = torch.cat([turned, *snapped], -3)
         f_trials = sep(trials, trial_axis)
         best = f_trials.amax(-3)
@@ -240,6 +275,24 @@ def _ascend(n, pa, rot_a, sa, pb, rot_b, sb):
         angle = torch.where(better, 2 * angle * (turns * pick).sum(-3), 0.1 * angle).clamp_max(NORMAL_TURN)
         f = torch.maximum(best, f)
     return n, f
+
+
+def separating_normal(cands, a, b, climb_best_only=False):
+    """The best separating normal ``(3, P, B)`` from ``b`` towards ``a`` and its separation ``(P, B)`` (a lower bound
+    on the signed distance [m]: any normal's is), climbed from candidate directions ``cands (3, P, K, B)`` (any
+    length, either sign; a vanishing one stands for b's z axis) by :func:`_ascend`; ``a, b = (shape, pos (3, P, B),
+    rot (3, 3, P, B), size (3, P, 1))``. ``climb_best_only``: climb from the best candidate alone (a K-th of the
+    work, where the candidates are the pair's separating axes and the best lies in the maximum's basin)."""
+    pos_a, pos_b, rot_b = a[1], b[1], b[2]
+    cands = _unit_or(cands, rot_b[:, 2].unsqueeze(-2))
+    cands = torch.where(spatial.dot((pos_a - pos_b).unsqueeze(-2), cands) < 0, -cands, cands)
+    a, b = (x[:1] + tuple(v.unsqueeze(-2) for v in x[1:]) for x in (a, b))
+    if climb_best_only:
+        sep = spatial.dot(a[1] - b[1], cands) - width(a[0], a[2], a[3], cands) - width(b[0], b[2], b[3], cands)
+        cands = (cands * _first(sep == sep.amax(-2, keepdim=True))).sum(-2, keepdim=True)
+    cands, sep = _ascend(cands, a, b)
+    best = sep.amax(-2, keepdim=True)
+    return (cands * _first(sep == best)).sum(-2), best.squeeze(-2)
 
 
 def _rim(pos, rot, size, angle):
@@ -294,9 +347,7 @@ def cylinder_pair(pa, rot_a, sa, pb, rot_b, sb):
     # the separating normal: the best of those candidates, climbed (any normal's separation is a lower bound;
     # it has a local maximum per face of the Minkowski difference)
     cands = torch.cat([axis_a.unsqueeze(-2), axis_b.unsqueeze(-2), side_n.unsqueeze(-2), near_a, -near_b], -2)
-    cands = torch.where(spatial.dot((pa - pb).unsqueeze(-2), cands) < 0, -cands, cands)
-    cands, sep = _ascend(cands, *(x.unsqueeze(-2) for x in (pa, rot_a, sa, pb, rot_b, sb)))
-    n_star = (cands * _first(sep == sep.amax(-2, keepdim=True))).sum(-2)
+    n_star, sep = separating_normal(cands, ("cylinder", pa, rot_a, sa), ("cylinder", pb, rot_b, sb))
     n_out = torch.cat((n_star, -n_star), -2)  # out of the other cylinder
     # 4 points per cap rim at quarter turns from its nearest point; where that or the rim's support point along
     # n* is inside the other cylinder, from the support point
@@ -315,7 +366,7 @@ def cylinder_pair(pa, rot_a, sa, pb, rot_b, sb):
     pt = x - 0.5 * normal * dist
     (pt_a, pt_b), (n_a, n_b), (d_a, d_b) = pt.chunk(2, -3), normal.chunk(2, -3), dist.chunk(2, -3)
     # the separation itself, between the support points (mid-face where a face is flat along n*)
-    sep = sep.amax(-2, keepdim=True)
+    sep = sep.unsqueeze(-2)
     pt_s = (0.5 * (pa - _offset(rot_a, sa, n_star) + pb + _offset(rot_b, sb, n_star))).unsqueeze(-2)
     return (torch.cat((pt_a, pt_b, pt_s), -2), torch.cat((n_a, -n_b, n_star.unsqueeze(-2)), -2),
             torch.cat((d_a, d_b, sep), -2))

@@ -10,7 +10,8 @@ POINTS_PER_PAIR = {
     "sphere_plane": 1, "capsule_plane": 2, "box_plane": 8, "sphere_sphere": 1, "sphere_capsule": 1,
     "capsule_capsule": 1, "sphere_box": 1, "capsule_box": 3, "box_box": 16,
     "ellipsoid_plane": 1, "cylinder_plane": 8, "sphere_ellipsoid": 1, "sphere_cylinder": 1, "capsule_ellipsoid": 3,
-    "capsule_cylinder": 3, "ellipsoid_ellipsoid": 1, "cylinder_cylinder": 17,
+    "capsule_cylinder": 3, "ellipsoid_ellipsoid": 1, "cylinder_cylinder": 17, "ellipsoid_box": 1,
+    "cylinder_box": 29,
 }
 
 
