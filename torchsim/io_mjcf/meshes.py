@@ -22,8 +22,10 @@ from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
 #: The most hull vertices a colliding mesh may have. Contacts test every hull vertex against the other geom's face
 #: planes and both hulls' vertices along every face normal and edge-pair axis (``torchsim.collision_mesh``): a
 #: mesh-mesh pair of 64-vertex hulls (up to 124 faces each) costs 16k plane tests, 32k projections on the face
-#: normals and 2 x 2 Da Db x 128 on the edge pairs (Da, Db: the hulls' most edges at a vertex, 15-24 on robot
-#: arms' hulls capped at 64 vertices), 0.2-0.6 M dot products per substep, each a statement of a generated kernel. The robot models of dm_control, robosuite and gymnasium-robotics have
+#: normals and 2 x 2 Da Db x 128 on the edge pairs (Da, Db: the hulls' most edges at a vertex, 9-15 on robot arms'
+#: hulls capped at 64 vertices), 0.1-0.2 M dot products per substep, each a statement of a generated kernel.
+#: Measured, eager, batch 1, float64, 2 shared cores: a step of robosuite's Panda, UR5e, xArm7 (16-22 mesh pairs,
+#: hulls capped at 64) takes 37-61 ms, TIAGo's (266 mesh pairs) 1.1 s. The robot models of dm_control, robosuite and gymnasium-robotics have
 #: hulls of 100-10600 vertices (median 232 over their colliding meshes); MuJoCo's ``maxhullvert`` caps a hull at
 #: compile time, and with it MuJoCo and torchsim collide the same hull (the refusal says so).
 MAX_HULL_VERTICES = 64
@@ -55,8 +57,8 @@ def _padded(rows: np.ndarray, n: int) -> np.ndarray:
 
 
 def _hull(m: mujoco.MjModel, g: int) -> tuple[np.ndarray, list, np.ndarray]:
-    """Mesh geom ``g``'s hull: vertices ``(n, 3)``, each one's edges to its neighbours (``n`` arrays ``(k, 3)``)
-    and merged face planes ``(f, 4)``, geom frame."""
+    """Mesh geom ``g``'s hull: vertices ``(n, 3)``, each one's edges to its neighbours (``n`` arrays ``(k, 3)``;
+    only edges between faces of different planes) and merged face planes ``(f, 4)``, geom frame."""
     mesh = m.geom_dataid[g]
     verts = m.mesh_vert[m.mesh_vertadr[mesh]:m.mesh_vertadr[mesh] + m.mesh_vertnum[mesh]].astype(np.float64)
     adr = m.mesh_graphadr[mesh]
@@ -73,17 +75,27 @@ def _hull(m: mujoco.MjModel, g: int) -> tuple[np.ndarray, list, np.ndarray]:
             f"mesh geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r} can collide and its convex hull has {len(ids)} "
             f"vertices, more than the {MAX_HULL_VERTICES} torchsim collides; give its mesh a smaller hull with "
             f"<mesh name={mesh_name!r} maxhullvert=\"{MAX_HULL_VERTICES}\"> (MuJoCo then collides that hull too)")
-    neighbours = {int(i): set() for i in ids}
-    for tri in triangles.tolist():
+    planes, plane_of = _planes(verts, triangles, verts[ids].mean(0))
+    # the hull's edges: between triangles of two planes (a diagonal inside a merged face is none)
+    sides = {}
+    for tri, plane in zip(triangles.tolist(), plane_of):
         for k in range(3):
-            neighbours[tri[k]] |= {tri[k - 1], tri[k - 2]}
-    edges = [verts[sorted(neighbours[int(i)])] - verts[i] for i in ids]
-    return verts[ids], edges, _planes(verts, triangles, verts[ids].mean(0))
+            sides.setdefault(frozenset((tri[k], tri[k - 1])), set()).add(plane)
+    neighbours = {int(i): [] for i in ids}
+    for edge, faces in sides.items():
+        if len(faces) > 1:
+            i, j = edge
+            neighbours[i].append(j)
+            neighbours[j].append(i)
+    # a vertex inside a merged face (within its tolerance) has none: a zero edge, which gives no axis
+    edges = [verts[sorted(neighbours[int(i)])] - verts[i] if neighbours[int(i)] else np.zeros((1, 3)) for i in ids]
+    return verts[ids], edges, planes
 
 
-def _planes(verts: np.ndarray, triangles: np.ndarray, inside: np.ndarray) -> np.ndarray:
+def _planes(verts: np.ndarray, triangles: np.ndarray, inside: np.ndarray) -> tuple[np.ndarray, list]:
     """Outward planes ``(f, 4)`` of a hull's triangles, coplanar ones (normals and offsets equal within the float32
-    precision MuJoCo keeps mesh vertices in) merged; ``inside``: a point inside the hull."""
+    precision MuJoCo keeps mesh vertices in) merged, and each triangle's plane; ``inside``: a point inside the
+    hull."""
     a, b, c = (verts[triangles[:, i]] for i in range(3))
     normal = np.cross(b - a, c - a)
     normal /= np.linalg.norm(normal, axis=1, keepdims=True)
@@ -92,8 +104,10 @@ def _planes(verts: np.ndarray, triangles: np.ndarray, inside: np.ndarray) -> np.
     planes = np.concatenate([normal, offset[:, None]], 1) * flip
     scale = np.abs(verts).max()
     tolerance = np.array([1e-5, 1e-5, 1e-5, 1e-5 * scale])
-    merged = []
+    merged, plane_of = [], []
     for p in planes:
-        if not any((np.abs(p - q) <= tolerance).all() for q in merged):
+        same = [k for k, q in enumerate(merged) if (np.abs(p - q) <= tolerance).all()]
+        plane_of.append(same[0] if same else len(merged))
+        if not same:
             merged.append(p)
-    return np.array(merged)
+    return np.array(merged), plane_of
