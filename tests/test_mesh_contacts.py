@@ -3,9 +3,10 @@
 Both sides read the same float32 mesh vertices, so where a contact is a hull vertex against a face (a mesh on a
 plane, a corner on a face) points, normals and distances agree to float64 round-off: checked to 1e-9 m. MuJoCo's
 own contacts are its convex solver's: one deepest point per pair, or with its multi-contact polygon clipping (MuJoCo
-4) up to 4 points of the touching faces; ours are every hull vertex against the other geom. So a face-to-face
-contact is checked both ways where both report vertices (ours among MuJoCo's, MuJoCo's deepest among ours), and
-the sampled poses by the smallest distance of each.
+4) up to 4 points of the touching faces; ours are every hull vertex against the other geom, and for boxes, hulls
+and cylinders the other's points and one separating-axis contact. So a face-to-face contact is checked both ways
+where both report vertices (ours among MuJoCo's, MuJoCo's deepest among ours), and sampled poses by the smallest
+distance of each against ``mj_geomDistance`` (MuJoCo's own tolerance: 1e-6 m).
 """
 
 import mujoco
