@@ -21,7 +21,7 @@ Pairs (``a`` the lower-ranked geom, normals from ``b`` towards ``a``; ``V`` the 
   ``collision._point_box``) and the separating-axis contact (:func:`_separation`) (``9 + V`` points);
 - mesh-mesh: each hull's vertices against the other's faces, and the separating-axis contact (``1 + 2 V``);
 - cylinder-mesh: the cylinder's 8 cap rim points against the hull's faces and the hull's vertices against the
-  cylinder (``8 + V``, :func:`_cylinder_hull`).
+  cylinder (``8 + V``, :func:`_cylinder_hull`); a hull edge across the cylinder's side or rim is missed.
 The vertices alone miss edge-edge crossings (no vertex of either inside the other); the separating-axis contact
 finds them, over the face normals and the cross products of the edges at the support vertices
 (``EDGE_ROUNDS`` rounds), never too shallow.
@@ -133,8 +133,10 @@ def pair_contacts(kind, pa, rot_a, sa, hull_a, pb, rot_b, sb, hull_b, box_corner
 def _cylinder_hull(pa, rot_a, sa, side_b, real_b, pb, rot_b, plane_b):
     """A cylinder ``a`` against a hull ``b``: its caps' rim points against the hull's faces, 4 per cap at quarter
     turns from its deepest along the hull face normal that separates them most (as on a plane: a cylinder rests on
-    a face on its cap or its side), and the hull's vertices against the cylinder (exact). Edge-edge crossings of a
-    rim and a hull edge are missed."""
+    a face on its cap or its side), and the hull's vertices against the cylinder (exact). Exact on a face (MuJoCo's
+    contacts on its side, its depth on its cap), but a hull edge across the cylinder's side or rim with no hull
+    vertex inside is missed: against the irregular hull of ``tests/test_mesh_contacts.py`` on 300 random poses
+    from 1 cm inside to 2 cm apart, 39 of the 99 overlapping ones were missed and the distance was exact on 40 %."""
     verts_b, _, _, faces_b = side_b
     # each face normal's separation: the cylinder's lowest rim point along it (its support point is one of the 8)
     # less the hull's highest vertex
