@@ -20,8 +20,9 @@ Pairs (``a`` the lower-ranked geom, normals from ``b`` towards ``a``; ``V`` the 
 - box-mesh: the box's 8 corners against the hull's faces, the hull's vertices against the box (exact distance,
   ``collision._point_box``) and the separating-axis contact (:func:`_separation`) (``9 + V`` points);
 - mesh-mesh: each hull's vertices against the other's faces, and the separating-axis contact (``1 + 2 V``);
-- cylinder-mesh: the cylinder's 8 cap rim points against the hull's faces and the hull's vertices against the
-  cylinder (``8 + V``, :func:`_cylinder_hull`); a hull edge across the cylinder's side or rim is missed.
+- cylinder-mesh: the cylinder's 8 cap rim points against the hull's faces, the hull's vertices against the
+  cylinder and a separating-axis contact (hull face normals, the cylinder's axis and its cross products with the
+  edges at the hull's support vertex) (``9 + V``, :func:`_cylinder_hull`), never too shallow.
 The vertices alone miss edge-edge crossings (no vertex of either inside the other); the separating-axis contact
 finds them, over the face normals and the cross products of the edges at the support vertices
 (``EDGE_ROUNDS`` rounds), never too shallow.
@@ -133,23 +134,56 @@ def pair_contacts(kind, pa, rot_a, sa, hull_a, pb, rot_b, sb, hull_b, box_corner
 def _cylinder_hull(pa, rot_a, sa, side_b, real_b, pb, rot_b, plane_b):
     """A cylinder ``a`` against a hull ``b``: its caps' rim points against the hull's faces, 4 per cap at quarter
     turns from its deepest along the hull face normal that separates them most (as on a plane: a cylinder rests on
-    a face on its cap or its side), and the hull's vertices against the cylinder (exact). Exact on a face (MuJoCo's
-    contacts on its side, its depth on its cap), but a hull edge across the cylinder's side or rim with no hull
-    vertex inside is missed: against the irregular hull of ``tests/test_mesh_contacts.py`` on 300 random poses
-    from 1 cm inside to 2 cm apart, 39 of the 99 overlapping ones were missed and the distance was exact on 40 %."""
-    verts_b, _, _, faces_b = side_b
-    # each face normal's separation: the cylinder's lowest rim point along it (its support point is one of the 8)
-    # less the hull's highest vertex
-    rims = collision_round.plane_points("cylinder", pa.unsqueeze(-2), rot_a.unsqueeze(-2), sa.unsqueeze(-2), faces_b)
-    sep = (spatial.dot(rims, faces_b.unsqueeze(-2)).amin(-2)
-           - spatial.dot(verts_b.unsqueeze(-3), faces_b.unsqueeze(-2)).amax(-2))  # (P, F, B)
-    chosen = (sep == sep.amax(-2, keepdim=True)).to(sep.dtype)
-    normal = spatial.normalize((faces_b * chosen).sum(-2))
+    a face on its cap or its side), the hull's vertices against the cylinder (exact), and a separating-axis
+    contact (:func:`_cylinder_separation`) for a hull edge across the cylinder's side."""
+    verts_b, _, edges_b, faces_b = side_b
+    normal, sep = _cylinder_axis(pa, rot_a, sa, verts_b, faces_b)
     pt_a, n_a, d_a = _against_hull(collision_round.plane_points("cylinder", pa, rot_a, sa, normal), 0.0, pb, rot_b,
                                    plane_b)
     pt_b, n_b, d_b = collision_round.point_cylinder(verts_b, 0.0, pa.unsqueeze(-2), rot_a.unsqueeze(-2),
                                                     sa.unsqueeze(-2))
-    return torch.cat((pt_a, pt_b), -2), torch.cat((n_a, -n_b), -2), torch.cat((d_a, _masked(d_b, real_b)), -2)
+    pt_s, n_s, d_s = _cylinder_separation(pa, rot_a, sa, side_b, real_b, normal, sep)
+    return (torch.cat((pt_a, pt_b, pt_s), -2), torch.cat((n_a, -n_b, n_s), -2),
+            torch.cat((d_a, _masked(d_b, real_b), d_s), -2))
+
+
+def _cylinder_axis(pa, rot_a, sa, verts_b, axes):
+    """The axis of ``axes (3, P, N, B)`` (unit, hull b towards cylinder a) that separates a cylinder and a hull most
+    (an even blend where axes tie), and that separation ``(P, B)``: the cylinder's lowest point along an axis is
+    on a cap rim, the deepest of the 8 points ``collision_round.plane_points`` gives."""
+    rims = collision_round.plane_points("cylinder", pa.unsqueeze(-2), rot_a.unsqueeze(-2), sa.unsqueeze(-2), axes)
+    sep = (spatial.dot(rims, axes.unsqueeze(-2)).amin(-2)
+           - spatial.dot(verts_b.unsqueeze(-3), axes.unsqueeze(-2)).amax(-2))  # (P, N, B)
+    best = sep.amax(-2)
+    chosen = (sep == best.unsqueeze(-2)).to(sep.dtype)
+    return spatial.normalize((axes * chosen).sum(-2)), best
+
+
+def _cylinder_separation(pa, rot_a, sa, side_b, real_b, face_normal, face_sep):
+    """A cylinder's separating-axis contact with a hull (point, normal b->a ``(3, P, 1, B)``, distance
+    ``(P, 1, B)``): the best hull face normal's separation (``face_normal``, ``face_sep``), or a better one across
+    the cylinder's axis and an edge at the hull's support vertex along it (a hull edge across the side), or along
+    the axis: every separation is a lower bound on the signed distance, so never too shallow. The point is midway
+    across the gap from the cylinder's deepest rim point (a face's normal) or between the two support points."""
+    verts_b, _, edges_b, _ = side_b
+    axis = rot_a[:, 2]
+    edge_b = (edges_b * _extreme(verts_b, real_b.to(verts_b.dtype), face_normal, 1.0, one=True).unsqueeze(-2)
+              ).sum(-3)  # (3, P, D, B)
+    cross = spatial.cross(edge_b, axis.unsqueeze(-2))
+    square = spatial.dot(cross, cross)
+    parallel = square <= 1e-6 * spatial.dot(edge_b, edge_b)  # along the axis: no axis, the face normal instead
+    cross = torch.where(parallel, face_normal.unsqueeze(-2), cross * torch.rsqrt(square.clamp_min(1e-30)))
+    axes = torch.cat((cross, -cross, axis.unsqueeze(-2), -axis.unsqueeze(-2)), -2)
+    edge_normal, edge_sep = _cylinder_axis(pa, rot_a, sa, verts_b, axes)
+    across = edge_sep > face_sep
+    normal, sep = torch.where(across, edge_normal, face_normal), torch.maximum(edge_sep, face_sep)
+    rim = collision_round.plane_points("cylinder", pa, rot_a, sa, normal)  # (3, P, 8, B)
+    along = spatial.dot(rim, normal.unsqueeze(-2))
+    deepest = (along == along.amin(-2, keepdim=True)).to(along.dtype)
+    low_a = (rim * deepest).sum(-2) / deepest.sum(-2)
+    high_b = (verts_b * _extreme(verts_b, real_b.to(verts_b.dtype), normal, 1.0)).sum(-2)
+    point = torch.where(across, 0.5 * (low_a + high_b), low_a - 0.5 * sep * normal)
+    return point.unsqueeze(-2), normal.unsqueeze(-2), sep.unsqueeze(-2)
 
 
 def _world_hull(pos, rot, vert, real, edge, plane):
