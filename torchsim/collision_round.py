@@ -271,8 +271,8 @@ def _ascend(n, a, b):
         best = f_trials.amax(-3)
         pick = _first(f_trials == best.unsqueeze(-3), -3)
         better = best > f
-        n = torch.where(better, (trials * pick).sum(-3), n)
-        angle = torch.where(better, 2 * angle * (turns * pick).sum(-3), 0.1 * angle).clamp_max(NORMAL_TURN)
+        n = torch.where(better, torch.where(pick, trials, 0.0).sum(-3), n)
+        angle = torch.where(better, 2 * angle * torch.where(pick, turns, 0.0).sum(-3), 0.1 * angle).clamp(max=NORMAL_TURN)
         f = torch.maximum(best, f)
     return n, f
 
@@ -289,10 +289,9 @@ def separating_normal(cands, a, b, climb_best_only=False):
     a, b = (x[:1] + tuple(v.unsqueeze(-2) for v in x[1:]) for x in (a, b))
     if climb_best_only:
         sep = spatial.dot(a[1] - b[1], cands) - width(a[0], a[2], a[3], cands) - width(b[0], b[2], b[3], cands)
-        cands = (cands * _first(sep == sep.amax(-2, keepdim=True))).sum(-2, keepdim=True)
+        cands = torch.where(_first(sep == sep.amax(-2, keepdim=True)), cands, 0.0).sum(-2, keepdim=True)
     cands, sep = _ascend(cands, a, b)
-    best = sep.amax(-2, keepdim=True)
-    return (cands * _first(sep == best)).sum(-2), best.squeeze(-2)
+    return torch.where(_first(sep == sep.amax(-2, keepdim=True)), cands, 0.0).sum(-2), sep.amax(-2)
 
 
 def _rim(pos, rot, size, angle):
@@ -312,7 +311,7 @@ def _nearest_rim(pos, rot, size, opos, orot, osize):
     spacing = 2 * torch.pi / RIM_SAMPLES
     angles = torch.arange(RIM_SAMPLES, dtype=pos.dtype, device=pos.device).view(-1, 1) * spacing
     dist = point_cylinder(_rim(pos, rot, size, angles), 0.0, *other)[2]  # (P, 2, RIM_SAMPLES, B)
-    lo = (angles * _first(dist == dist.amin(-2, keepdim=True))).sum(-2, keepdim=True) - spacing
+    lo = torch.where(_first(dist == dist.amin(-2, keepdim=True)), angles, 0.0).sum(-2, keepdim=True) - spacing
     width = 2 * spacing
     for _ in range(RIM_ITERATIONS):
         width = 0.5 * width

@@ -240,7 +240,73 @@ def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: Join
         after, qd_slides = slide_inertia_and_damping(sys, before, after, dof_values(sys, frames.axes), qd, inv, h,
                                                      limits)
         rates = torch.where(lanes.param(sys.dof_is_hinge, 1), rates, qd_slides)
+    if sys.root_passive:
+        after = root_rate_solve(sys, before, after, frames, inv, h)
     return after, rates
+
+
+def root_rate_solve(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,
+                    h: float) -> Bodies:
+    """Armature, implicit damping and (ball joints) stiffness of free bodies and ball joints over one substep, on
+    the rates ``after`` the substep's forces, from the rates ``before`` them (the rotors' rates); ``frames`` at the
+    substep's start.
+
+    MJCF gives each of these joints one damping ``d`` and armature ``J`` for all its dofs, so with ``k = J + h d``
+    the rotor and damper add ``k`` to every dof's inertia and ``J`` times the rotor's rate to its momentum, as for
+    the hinges (:func:`hinge_rate_solve`).
+
+    A free body's dofs are the velocity ``v_o`` of its frame's origin (``r`` from the COM, world frame) and its
+    angular velocity ``w``: with ``(v, w)`` at the COM, ``v_o = v + w x r``, the body's momentum equations gain
+    ``k (v_o, r x v_o) + (0, k w)``, i.e. ``(m + k) v - k r x w = p`` and ``k r x v + (I + k - k [r]x^2) w = L``
+    (``p = m v_raw + J v_o,ref``, ``L = I w_raw + r x J v_o,ref + J w_ref``), solved by eliminating ``v``: one 3x3
+    solve per body. Gravity then accelerates a body with armature at ``m / (m + J)`` of ``g``, as in MuJoCo. (The
+    rotor's rate is re-read each substep, exact where its linear part does not turn with the body: the loader
+    refuses armature on a free body whose origin is off its COM.)
+
+    A ball joint's rotor turns with the child's rate relative to the parent: the impulse ``mu`` it and the damper
+    take solves ``(k A + 1) mu = J w_ref - k w_raw`` (``A`` the child's and parent's inverse inertias about their
+    COMs, as the hinges', exact for a child whose COM is at the pivot), and the spring adds the impulse ``-h K
+    log(q_spring^-1 q)`` (MuJoCo's ``mju_subQuat``, child frame) before it.
+    """
+    if sys.free_body.shape[0]:
+        body = sys.free_body
+        mass = lanes.param(sys.body_mass, 1).index_select(-2, body)
+        rot = inv.rot.index_select(-2, body)
+        inertia = spatial.mm(rot, lanes.param(sys.body_inertia, 1, 2).index_select(-2, body), spatial.transpose(rot))
+        arm = spatial.matvec(rot, lanes.param(sys.free_origin, 1, 1))
+        armature = lanes.param(sys.free_armature, 1)
+        k = armature + h * lanes.param(sys.free_damping, 1)
+        v_raw, w_raw = after.xd_vel.index_select(-2, body), after.xd_ang.index_select(-2, body)
+        w_ref = before.xd_ang.index_select(-2, body)
+        rotor = armature * (before.xd_vel.index_select(-2, body) + spatial.cross(w_ref, arm))  # J v_o,ref
+        p = mass * v_raw + rotor
+        l_ang = spatial.matvec(inertia, w_raw) + spatial.cross(arm, rotor) + armature * w_ref
+        share = k / (mass + k)
+        lever = spatial.outer(arm, arm) - spatial.dot(arm, arm) * spatial.eye3(arm, 2)  # [r]x^2
+        schur = inertia + k * spatial.eye3(arm, 2) - (share * mass) * lever
+        w = spatial.matvec(spatial.inv3(schur), l_ang - share * spatial.cross(arm, p))
+        v = (p + k * spatial.cross(arm, w)) / (mass + k)
+        after = after._replace(xd_vel=after.xd_vel.index_copy(-2, body, v),
+                               xd_ang=after.xd_ang.index_copy(-2, body, w))
+    if sys.ball_joint.shape[0]:
+        joint = sys.ball_joint
+        child, parent = sys.jnt_child[joint], sys.jnt_parent[joint]
+        inv_c, inv_p = inv.inertia.index_select(-2, child), inv.inertia.index_select(-2, parent)
+        armature = lanes.param(sys.ball_armature, 1)
+        k = armature + h * lanes.param(sys.ball_damping, 1)
+        offset = spatial.quat_mul(spatial.quat_conj(lanes.param(sys.ball_spring, 1, 1)),
+                                  frames.quat_rel.index_select(-2, joint))
+        spring = spatial.quat_rotate(before.x_quat.index_select(-2, child),
+                                     -h * lanes.param(sys.ball_stiffness, 1) * spatial.quat_to_rot_vec(offset))
+        a = inv_c + inv_p
+        w_raw = (after.xd_ang.index_select(-2, child) - after.xd_ang.index_select(-2, parent)
+                 + spatial.matvec(a, spring))
+        w_ref = before.xd_ang.index_select(-2, child) - before.xd_ang.index_select(-2, parent)
+        mu = spatial.matvec(spatial.inv3(k * a + spatial.eye3(a, 2)), armature * w_ref - k * w_raw)
+        impulse = mu + spring
+        after = after._replace(xd_ang=after.xd_ang.index_add(-2, child, spatial.matvec(inv_c, impulse))
+                               .index_add(-2, parent, -spatial.matvec(inv_p, impulse)))
+    return after
 
 
 def armature_loaded_inertia(sys: System, inv: rigid.InverseInertia, axes: torch.Tensor) -> rigid.InverseInertia:

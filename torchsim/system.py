@@ -122,6 +122,13 @@ class System:
         frictionloss, dof_friction_slides whether any slide dof has it (a per-env value elsewhere is ignored).
         ball_joint, ball_qpos, ball_qvel: (nball,) ball joints and their addresses.
         free_body, free_qpos, free_qvel: (nfree,) free-floating bodies and their addresses.
+        ball_damping [N m s], ball_armature [kg m^2], ball_stiffness [N m/rad]: (nball,) each ball joint's (one
+        value for its 3 dofs, as MJCF sets them); ball_spring: (nball, 4) the quaternion its spring pulls towards
+        (MuJoCo's ``qpos_spring``).  free_damping, free_armature: (nfree,) each free joint's, on all 6 dofs (MuJoCo's:
+        linear ones on the velocity of the body frame's origin, world frame; angular ones on the angular velocity).
+        free_origin: (nfree, 3) that origin from the body's COM, body frame [m].  root_passive: whether any ball
+        joint or free body has damping, armature or stiffness (static: a model without skips their work,
+        ``joint_space.root_rate_solve``).
     Actuators (MuJoCo ``gaintype=fixed``, ``biastype=none|affine``, joint transmission):
         act_dof: (U,) dof index.  act_gear, act_gain: (U,), batchable.  act_bias: (U, 3), batchable.
         act_ctrl_range, act_force_range: (U, 2); act_ctrl_limited, act_force_limited: (U,) bool.
@@ -272,6 +279,14 @@ class System:
     free_body: torch.Tensor
     free_qpos: torch.Tensor
     free_qvel: torch.Tensor
+    ball_damping: torch.Tensor
+    ball_armature: torch.Tensor
+    ball_stiffness: torch.Tensor
+    ball_spring: torch.Tensor
+    free_damping: torch.Tensor
+    free_armature: torch.Tensor
+    free_origin: torch.Tensor
+    root_passive: bool
     # actuators
     act_dof: torch.Tensor
     act_gear: torch.Tensor

@@ -34,12 +34,18 @@ def joint_fields(m: mujoco.MjModel, fused: FusedBodies) -> tuple[dict, dict]:
     for b in fused.roots:
         jids = list(range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]))
         kind = _check_joints(m, b, jids)
+        if kind == "free" and m.dof_armature[m.jnt_dofadr[jids[0]]] and np.linalg.norm(fused.com[fused.index[b]]) > 1e-9:
+            raise UnsupportedMJCFError(
+                f"armature on the free joint of body {name(m, mujoco.mjtObj.mjOBJ_BODY, b)!r}, whose frame's origin "
+                "is off its centre of mass, is not supported (its linear armature moves with the origin); damping is")
         if kind == "free":
-            free.append((fused.index[b], m.jnt_qposadr[jids[0]], m.jnt_dofadr[jids[0]]))
+            free.append((fused.index[b], m.jnt_qposadr[jids[0]], m.jnt_dofadr[jids[0]],
+                         *_passive(m, jids[0]), -fused.com[fused.index[b]]))
             continue
         joints.append(_joint(m, b, jids, fused, kind == "ball"))
         if kind == "ball":
-            ball.append((len(joints) - 1, m.jnt_qposadr[jids[0]], m.jnt_dofadr[jids[0]]))
+            ball.append((len(joints) - 1, m.jnt_qposadr[jids[0]], m.jnt_dofadr[jids[0]], *_passive(m, jids[0]),
+                         m.jnt_stiffness[jids[0]], m.qpos_spring[m.jnt_qposadr[jids[0]]:][:4]))
             continue
         hinges = [j for j in jids if m.jnt_type[j] == _HINGE]
         for slot_in_kind, j in enumerate(jids):  # slides fill slots 0.., hinges 3..
@@ -54,9 +60,9 @@ def _check_joints(m, b, jids) -> str:
     types = [int(m.jnt_type[j]) for j in jids]
     body = name(m, mujoco.mjtObj.mjOBJ_BODY, b)
     for j in jids:
-        if types[0] in (_FREE, _BALL) and (m.dof_damping[m.jnt_dofadr[j]] or m.dof_armature[m.jnt_dofadr[j]]
-                                           or m.jnt_stiffness[j]):
-            raise UnsupportedMJCFError(f"damping/armature/stiffness on the free or ball joint of body {body!r}")
+        if types[0] == _FREE and m.jnt_stiffness[j]:
+            raise UnsupportedMJCFError(f"stiffness on the free joint of body {body!r} is not supported (damping and "
+                                       "armature are)")
         if types[0] in (_FREE, _BALL) and m.dof_frictionloss[m.jnt_dofadr[j]]:
             raise UnsupportedMJCFError(f"frictionloss on the free or ball joint of body {body!r} is not supported "
                                        "(only on hinge and slide joints)")
@@ -84,6 +90,12 @@ def _check_joints(m, b, jids) -> str:
     if len(axes) >= 2 and any(abs(axes[i] @ axes[k]) > 1e-6 for i in range(len(axes)) for k in range(i)):
         raise UnsupportedMJCFError(f"the {len(axes)} hinge axes of body {body!r} must be mutually orthogonal")
     return "slides_hinges"
+
+
+def _passive(m, j) -> tuple:
+    """A free or ball joint's damping and armature, per dof in MuJoCo but one value for all of a joint's dofs in
+    MJCF (a joint's attribute): its first dof's."""
+    return m.dof_damping[m.jnt_dofadr[j]], m.dof_armature[m.jnt_dofadr[j]]
 
 
 def _unit_axes(m, jids) -> list:
@@ -180,6 +192,13 @@ def _tensors(joints: list, dofs: list, ball: list, free: list, num_bodies: int) 
     for prefix, first, rows in (("ball", "joint", ball), ("free", "body", free)):
         for i, k in enumerate((first, "qpos", "qvel")):
             out[f"{prefix}_{k}"] = torch.as_tensor(np.array([r[i] for r in rows], dtype=np.int64))
+    for prefix, rows, fields in (("ball", ball, (("damping", ()), ("armature", ()), ("stiffness", ()),
+                                                 ("spring", (4,)))),
+                                 ("free", free, (("damping", ()), ("armature", ()), ("origin", (3,))))):
+        for i, (k, shape) in enumerate(fields, start=3):
+            out[f"{prefix}_{k}"] = torch.as_tensor(np.array([r[i] for r in rows], dtype=float).reshape(-1, *shape))
+    out["root_passive"] = any(bool(out[k].any()) for k in ("ball_damping", "ball_armature", "ball_stiffness",
+                                                           "free_damping", "free_armature"))
     return out
 
 
