@@ -272,7 +272,8 @@ def _ascend(n, a, b):
         pick = _first(f_trials == best.unsqueeze(-3), -3)
         better = best > f
         n = torch.where(better, torch.where(pick, trials, 0.0).sum(-3), n)
-        angle = torch.where(better, 2 * angle * torch.where(pick, turns, 0.0).sum(-3), 0.1 * angle).clamp(max=NORMAL_TURN)
+        angle = torch.where(better, 2 * angle * torch.where(pick, turns, 0.0).sum(-3), 0.1 * angle)
+        angle = angle.clamp(max=NORMAL_TURN)
         f = torch.maximum(best, f)
     return n, f
 

@@ -34,7 +34,8 @@ def joint_fields(m: mujoco.MjModel, fused: FusedBodies) -> tuple[dict, dict]:
     for b in fused.roots:
         jids = list(range(m.body_jntadr[b], m.body_jntadr[b] + m.body_jntnum[b]))
         kind = _check_joints(m, b, jids)
-        if kind == "free" and m.dof_armature[m.jnt_dofadr[jids[0]]] and np.linalg.norm(fused.com[fused.index[b]]) > 1e-9:
+        off_com = np.linalg.norm(fused.com[fused.index[b]]) > 1e-9
+        if kind == "free" and m.dof_armature[m.jnt_dofadr[jids[0]]] and off_com:
             raise UnsupportedMJCFError(
                 f"armature on the free joint of body {name(m, mujoco.mjtObj.mjOBJ_BODY, b)!r}, whose frame's origin "
                 "is off its centre of mass, is not supported (its linear armature moves with the origin); damping is")
