@@ -8,7 +8,9 @@ is harmless):
   (``pos``), except that a body with 2 hinges and no slides may give them different anchors
   (``torchsim.hinge_anchors``).
   ``range``, ``damping``, ``armature``, ``stiffness``/``springref`` and ``ref`` on hinges and slides.
-  ``frictionloss`` on hinges and slides (not on free or ball joints, nor on tendons).
+  ``frictionloss`` on hinges and slides (not on free or ball joints, nor on tendons). ``damping`` and
+  ``armature`` on free joints (armature only where the body's origin is its centre of mass), ``damping``,
+  ``armature`` and ``stiffness`` on ball joints (``joint_space``); not ``stiffness`` on a free joint.
 - hinge angles run on through full turns in ``q`` (MuJoCo's ``qpos``), and limits, springs, tendons, equalities
   and servos see them so (also ranges wider than a turn) while a hinge turns less than half a turn per step
   (``kinematics.dof_angles``).
