@@ -149,3 +149,20 @@ def load_model(path: Path) -> tuple[str, mujoco.MjModel]:
     xml = urdf_to_mjcf(path) if path.suffix == ".urdf" else path.read_text()
     return xml, mujoco.MjModel.from_xml_string(xml)
 
+
+def rest_pose(xml: str, method: str, seconds: float) -> tuple[np.ndarray, np.ndarray]:
+    """The model's final ``qpos`` in MuJoCo and ``q`` in torchsim (float64, eager, zero controls) after ``seconds``
+    from ``qpos0`` at rest; asserts torchsim did not diverge."""
+    import torchsim  # engine code, imported where a test asks for it
+
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    for _ in range(round(seconds / m.opt.timestep)):
+        mujoco.mj_step(m, d)
+    sys = torchsim.load_mjcf(xml, method=method, dtype=F64)
+    state = torchsim.init(sys, sys.q0[None].clone(), torch.zeros(1, sys.nv, dtype=F64))
+    ctrl = torch.zeros(1, sys.nu, dtype=F64)
+    for _ in range(round(seconds / sys.timestep)):
+        state = torchsim.step(sys, state, ctrl)
+    assert not state.diverged.any()
+    return d.qpos.copy(), state.q[0].numpy()

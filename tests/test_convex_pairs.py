@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import torchsim
-from models import F64, METHODS
+from models import F64, rest_pose
 from torchsim import lanes
 from torchsim.collision import contacts
 from torchsim.kinematics import with_world
@@ -159,23 +159,11 @@ def test_cylinder_dropped_on_a_box_rests_like_mujoco(pos, euler, method):
     inside; the spring method's Baumgarte equilibrium up to 0.75 mm, XPBD on the surface, and the 4-degree drop
     still rocks by up to 0.7 deg at 0.3 s, lifting the centre by up to 1.1 mm), axis within 1 deg of vertical
     (cos > 0.99985), and no more than 1 cm from MuJoCo's place (a cylinder toppling off the edge moves by 10 cm)."""
-    xml = DROP.format(pos=pos, euler=euler)
-    m = mujoco.MjModel.from_xml_string(xml)
-    d = mujoco.MjData(m)
-    seconds = 0.3
-    for _ in range(round(seconds / m.opt.timestep)):
-        mujoco.mj_step(m, d)
-    sys = torchsim.load_mjcf(xml, method=method, dtype=F64)
-    state = torchsim.init(sys, sys.q0[None].clone(), torch.zeros(1, sys.nv, dtype=F64))
-    ctrl = torch.zeros(1, 0, dtype=F64)
-    for _ in range(round(seconds / sys.timestep)):
-        state = torchsim.step(sys, state, ctrl)
-    ours = state.q[0].numpy()
-    assert not state.diverged.any()
-    assert abs(d.qpos[2] - 0.2) < 1e-3 and _axis_z(d.qpos[3:7]) > 0.99985
-    assert abs(ours[2] - d.qpos[2]) < 1.5e-3
+    mj, ours = rest_pose(DROP.format(pos=pos, euler=euler), method, seconds=0.3)
+    assert abs(mj[2] - 0.2) < 1e-3 and _axis_z(mj[3:7]) > 0.99985
+    assert abs(ours[2] - mj[2]) < 1.5e-3
     assert _axis_z(ours[3:7]) > 0.99985
-    assert np.linalg.norm(ours[:2] - d.qpos[:2]) < 0.01
+    assert np.linalg.norm(ours[:2] - mj[:2]) < 0.01
 
 
 

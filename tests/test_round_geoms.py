@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import torchsim
-from models import F64, METHODS
+from models import F64, METHODS, rest_pose
 from torchsim import collision_round, lanes
 from torchsim.collision import contacts
 from torchsim.kinematics import with_world
@@ -31,21 +31,6 @@ DROP = """
 """
 
 
-def _rest(xml, method, seconds=0.2):
-    """Free bodies' final ``qpos`` in MuJoCo and in torchsim (float64, eager) after ``seconds``."""
-    m = mujoco.MjModel.from_xml_string(xml)
-    d = mujoco.MjData(m)
-    for _ in range(round(seconds / m.opt.timestep)):
-        mujoco.mj_step(m, d)
-    sys = torchsim.load_mjcf(xml, method=method, dtype=F64)
-    state = torchsim.init(sys, sys.q0[None].clone(), torch.zeros(1, sys.nv, dtype=F64))
-    ctrl = torch.zeros(1, 0, dtype=F64)
-    for _ in range(round(seconds / sys.timestep)):
-        state = torchsim.step(sys, state, ctrl)
-    assert not state.diverged.any()
-    return d.qpos.copy(), state.q[0].numpy()
-
-
 def _axis_z(quat):
     """World z component of a body's local z axis."""
     mat = np.zeros(9)
@@ -56,7 +41,7 @@ def _axis_z(quat):
 @pytest.mark.parametrize("method", METHODS)
 def test_cylinder_rests_on_cap(method):
     """Radius 0.1, half-height 0.05, dropped 2 mm with a small tilt: it settles flat on its cap at z = 0.05."""
-    mj, ts = _rest(DROP.format(z=0.052, euler="3 4 0", geom='type="cylinder" size="0.1 0.05"'), method)
+    mj, ts = rest_pose(DROP.format(z=0.052, euler="3 4 0", geom='type="cylinder" size="0.1 0.05"'), method, 0.2)
     assert abs(mj[2] - 0.05) < REST_TOL and abs(_axis_z(mj[3:7])) > 1 - 1e-6
     assert abs(ts[2] - 0.05) < REST_TOL
     assert abs(_axis_z(ts[3:7])) > 1 - 1e-6  # flat on the cap, like MuJoCo's
@@ -65,7 +50,7 @@ def test_cylinder_rests_on_cap(method):
 @pytest.mark.parametrize("method", METHODS)
 def test_cylinder_rests_on_side(method):
     """Radius 0.1, half-height 0.3, lying on its side: it stays there at z = radius, axis level."""
-    mj, ts = _rest(DROP.format(z=0.102, euler="90 3 0", geom='type="cylinder" size="0.1 0.3"'), method)
+    mj, ts = rest_pose(DROP.format(z=0.102, euler="90 3 0", geom='type="cylinder" size="0.1 0.3"'), method, 0.2)
     assert abs(mj[2] - 0.1) < REST_TOL and abs(_axis_z(mj[3:7])) < 1e-6
     assert abs(ts[2] - 0.1) < REST_TOL
     assert abs(_axis_z(ts[3:7])) < 1e-4
@@ -75,7 +60,7 @@ def test_cylinder_rests_on_side(method):
 @pytest.mark.parametrize("method", METHODS)
 def test_ellipsoid_rests_on_its_semi_axis(method):
     """Semi-axes 0.1, 0.2, 0.05, dropped flat (turned about z): it rests at z = 0.05, its shortest semi-axis."""
-    mj, ts = _rest(DROP.format(z=0.052, euler="0 0 30", geom='type="ellipsoid" size="0.1 0.2 0.05"'), method)
+    mj, ts = rest_pose(DROP.format(z=0.052, euler="0 0 30", geom='type="ellipsoid" size="0.1 0.2 0.05"'), method, 0.2)
     assert abs(mj[2] - 0.05) < 1.5e-3  # MuJoCo's rest penetration is 1.1 mm here
     assert abs(ts[2] - 0.05) < REST_TOL
 
@@ -212,7 +197,7 @@ def test_cylinders_stacked_cap_on_cap(method):
     xml = STACK.format(gy=0, bodies="""
     <body pos="0 0 0.0501"><freejoint/><geom type="cylinder" size="0.06 0.05"/></body>
     <body pos="0.005 0 0.1305" euler="0.5 -0.5 0"><freejoint/><geom type="cylinder" size="0.04 0.03"/></body>""")
-    mj, ts = _rest(xml, method, seconds=0.1)
+    mj, ts = rest_pose(xml, method, seconds=0.1)
     assert abs(mj[9] - mj[2] - 0.08) < REST_TOL and abs(mj[9] - 0.13) < REST_TOL
     assert abs((ts[9] - ts[2]) - (mj[9] - mj[2])) < REST_TOL
     assert abs(ts[9] - mj[9]) < (REST_TOL if method == "xpbd" else 2.5e-3)  # spring: 1.8 mm
@@ -226,7 +211,7 @@ def test_cylinders_side_by_side(method):
     xml = STACK.format(gy=-4, bodies="""
     <geom type="cylinder" size="0.05 0.3" pos="0 0 0.05" euler="0 90 0"/>
     <body pos="0.01 0.092 0.041" euler="0 90 0"><freejoint/><geom type="cylinder" size="0.04 0.15"/></body>""")
-    mj, ts = _rest(xml, method, seconds=0.1)
+    mj, ts = rest_pose(xml, method, seconds=0.1)
     assert abs(mj[1] - 0.09) < 2e-3 and abs(mj[2] - 0.04) < REST_TOL  # MuJoCo: 1.5 mm deep side on side
     assert abs(ts[1] - 0.09) < REST_TOL and abs(ts[1] - mj[1]) < 2e-3  # ours: 0.6 (xpbd), 0.9 mm (spring)
     assert abs(ts[2] - mj[2]) < (REST_TOL if method == "xpbd" else 2 * REST_TOL)  # spring: 1 mm deep in the floor
