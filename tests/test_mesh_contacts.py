@@ -15,7 +15,7 @@ import pytest
 import torch
 
 import torchsim
-from models import F64, METHODS
+from models import F64, METHODS, rest_pose
 from torchsim import lanes
 from torchsim.collision import contacts
 from torchsim.io_mjcf import UnsupportedMJCFError
@@ -244,27 +244,13 @@ def test_hulls_never_too_shallow(geom_a, exact):
     assert (np.abs(short) < 1e-6).mean() > exact
 
 
-def _rest(xml, method, seconds):
-    """Body a's final ``qpos`` in MuJoCo and in torchsim (float64, eager) after ``seconds``."""
-    m = mujoco.MjModel.from_xml_string(xml)
-    d = mujoco.MjData(m)
-    for _ in range(round(seconds / m.opt.timestep)):
-        mujoco.mj_step(m, d)
-    sys = torchsim.load_mjcf(xml, method=method, dtype=F64)
-    state = torchsim.init(sys, sys.q0[None].clone(), torch.zeros(1, sys.nv, dtype=F64))
-    for _ in range(round(seconds / sys.timestep)):
-        state = torchsim.step(sys, state, torch.zeros(1, 0, dtype=F64))
-    assert not state.diverged.any()
-    return d.qpos[:7].copy(), state.q[0, :7].numpy()
-
-
 @pytest.mark.parametrize("method", METHODS)
 def test_drop_comes_to_rest(method):
     """The irregular mesh dropped 2 cm, tilted, falls onto its face and rests at MuJoCo's height and attitude:
     within 1 mm (MuJoCo's soft contact rests ~0.1-0.2 mm deep, the spring method's up to 0.75 mm, XPBD on the
     surface: as ``test_round_geoms``) and 1 degree; a wrong hull face or vertex moves it by centimetres."""
     xml = _scene("irregular", pos_a="0 0 0.12", euler_a="8 -5 0").replace('gravity="0 0 0"', 'timestep="0.002"')
-    mj, ours = _rest(xml, method, seconds=0.6)
+    mj, ours = (q[:7] for q in rest_pose(xml, method, seconds=0.6))
     assert abs(mj[2] - ours[2]) < 1e-3
     turn = 2 * np.degrees(np.arccos(min(1.0, abs(float(np.dot(mj[3:7], ours[3:7]))))))
     assert turn < 1.0, turn
