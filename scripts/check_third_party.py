@@ -214,7 +214,8 @@ def summary(rows: list[dict]) -> str:
     status = collections.Counter(r["status"] for r in rows)
     verdict = collections.Counter(r["verdict"] for r in rows if r["verdict"])
     soft = collections.Counter(r["soft_verdict"] for r in rows if r["soft_verdict"])
-    causes = collections.Counter(re.sub(r"'[^']*'|\(\d+ found\)|#\d+", "…", r["detail"]).split("; ")[0]
+    names_and_counts = r"'[^']*'|\(\d+ found\)|#\d+|(?<=has )\d+(?= vertices)"  # what differs between models
+    causes = collections.Counter(re.sub(names_and_counts, "…", r["detail"]).split("; ")[0]
                                  for r in rows if r["status"] == "REFUSE")
     out = [f"{len(rows)} models: " + ", ".join(f"{k} {v}" for k, v in sorted(status.items())) + "; rolled out: "
            + (", ".join(f"{k} {v}" for k, v in sorted(verdict.items())) or "none") + "; with contacts, under "
