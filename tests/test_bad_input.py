@@ -72,29 +72,6 @@ CYLINDER = """
 """
 
 
-MESH = """
-<mujoco>
-  <asset><mesh name="tetrahedron" vertex="0 0 0  0.1 0 0  0 0.1 0  0 0 0.1"/></asset>
-  <worldbody>
-    <geom name="floor" type="plane" size="5 5 0.1"/>
-    <body pos="0 0 1"><freejoint/>
-      <geom name="rock" type="mesh" mesh="tetrahedron"/>
-    </body>
-  </worldbody>
-</mujoco>
-"""
-
-
-def test_colliding_mesh_unsupported():
-    mujoco.MjModel.from_xml_string(MESH)
-    with pytest.raises(torchsim.UnsupportedMJCFError) as err:
-        torchsim.load_mjcf(MESH)
-    msg = str(err.value)
-    assert "rock" in msg and "MESH" in msg
-    for shape in ("plane", "sphere", "capsule", "box", "ellipsoid", "cylinder"):
-        assert shape in msg
-
-
 def test_visual_cylinder_loads():
     xml = CYLINDER.format(flags='contype="0" conaffinity="0"')
     sys = torchsim.load_mjcf(xml, dtype=F64)

@@ -43,7 +43,7 @@ def test_evaluation_reuses_the_training_graph(tmp_path, caplog, monkeypatch):
     assert len([m for m in built if "spring step" in m and "as C++" in m]) == 1, built
     assert not [m for m in built if "_step_terms" in m or "finish" in m], built
     # the console names what torch.compile compiles: TorchRL's loss forward is a closure that says little alone
-    assert [m for m in built if "new_forward of ClipPPOLoss (torch.compile" in m], built
+    assert [m for m in built if "ClipPPOLoss.forward (torch.compile" in m], built
 
 
 CACHE_PROBE = textwrap.dedent("""
