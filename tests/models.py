@@ -166,3 +166,10 @@ def rest_pose(xml: str, method: str, seconds: float) -> tuple[np.ndarray, np.nda
         state = torchsim.step(sys, state, ctrl)
     assert not state.diverged.any()
     return d.qpos.copy(), state.q[0].numpy()
+
+
+def axis_z(quat) -> float:
+    """World z component of a body's local z axis, for its ``wxyz`` quaternion."""
+    mat = np.zeros(9)
+    mujoco.mju_quat2Mat(mat, quat)
+    return mat[8]

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 import torchsim
-from models import F64, rest_pose
+from models import F64, axis_z, rest_pose
 from torchsim import lanes
 from torchsim.collision import contacts
 from torchsim.kinematics import with_world
@@ -141,11 +141,6 @@ DROP = """
 """
 
 
-def _axis_z(quat):
-    mat = np.zeros(9)
-    mujoco.mju_quat2Mat(mat, quat)
-    return mat[8]
-
 
 # (start pos, euler, method): tilted 4 deg, dropped 1 cm onto the top face; and standing half over its +x edge
 # (centre 5 cm inside): MuJoCo's box polygon keeps it there, and so must the edge's point under the cap.
@@ -160,9 +155,9 @@ def test_cylinder_dropped_on_a_box_rests_like_mujoco(pos, euler, method):
     still rocks by up to 0.7 deg at 0.3 s, lifting the centre by up to 1.1 mm), axis within 1 deg of vertical
     (cos > 0.99985), and no more than 1 cm from MuJoCo's place (a cylinder toppling off the edge moves by 10 cm)."""
     mj, ours = rest_pose(DROP.format(pos=pos, euler=euler), method, seconds=0.3)
-    assert abs(mj[2] - 0.2) < 1e-3 and _axis_z(mj[3:7]) > 0.99985
+    assert abs(mj[2] - 0.2) < 1e-3 and axis_z(mj[3:7]) > 0.99985
     assert abs(ours[2] - mj[2]) < 1.5e-3
-    assert _axis_z(ours[3:7]) > 0.99985
+    assert axis_z(ours[3:7]) > 0.99985
     assert np.linalg.norm(ours[:2] - mj[:2]) < 0.01
 
 

@@ -13,7 +13,7 @@ import pytest
 import torch
 
 import torchsim
-from models import F64, METHODS, rest_pose
+from models import F64, METHODS, axis_z, rest_pose
 from torchsim import collision_round, lanes
 from torchsim.collision import contacts
 from torchsim.kinematics import with_world
@@ -31,29 +31,23 @@ DROP = """
 """
 
 
-def _axis_z(quat):
-    """World z component of a body's local z axis."""
-    mat = np.zeros(9)
-    mujoco.mju_quat2Mat(mat, quat)
-    return mat[8]
-
 
 @pytest.mark.parametrize("method", METHODS)
 def test_cylinder_rests_on_cap(method):
     """Radius 0.1, half-height 0.05, dropped 2 mm with a small tilt: it settles flat on its cap at z = 0.05."""
     mj, ts = rest_pose(DROP.format(z=0.052, euler="3 4 0", geom='type="cylinder" size="0.1 0.05"'), method, 0.2)
-    assert abs(mj[2] - 0.05) < REST_TOL and abs(_axis_z(mj[3:7])) > 1 - 1e-6
+    assert abs(mj[2] - 0.05) < REST_TOL and abs(axis_z(mj[3:7])) > 1 - 1e-6
     assert abs(ts[2] - 0.05) < REST_TOL
-    assert abs(_axis_z(ts[3:7])) > 1 - 1e-6  # flat on the cap, like MuJoCo's
+    assert abs(axis_z(ts[3:7])) > 1 - 1e-6  # flat on the cap, like MuJoCo's
 
 
 @pytest.mark.parametrize("method", METHODS)
 def test_cylinder_rests_on_side(method):
     """Radius 0.1, half-height 0.3, lying on its side: it stays there at z = radius, axis level."""
     mj, ts = rest_pose(DROP.format(z=0.102, euler="90 3 0", geom='type="cylinder" size="0.1 0.3"'), method, 0.2)
-    assert abs(mj[2] - 0.1) < REST_TOL and abs(_axis_z(mj[3:7])) < 1e-6
+    assert abs(mj[2] - 0.1) < REST_TOL and abs(axis_z(mj[3:7])) < 1e-6
     assert abs(ts[2] - 0.1) < REST_TOL
-    assert abs(_axis_z(ts[3:7])) < 1e-4
+    assert abs(axis_z(ts[3:7])) < 1e-4
     assert np.allclose(ts[3:7], mj[3:7], atol=1e-3)  # no roll or yaw either
 
 
@@ -201,7 +195,7 @@ def test_cylinders_stacked_cap_on_cap(method):
     assert abs(mj[9] - mj[2] - 0.08) < REST_TOL and abs(mj[9] - 0.13) < REST_TOL
     assert abs((ts[9] - ts[2]) - (mj[9] - mj[2])) < REST_TOL
     assert abs(ts[9] - mj[9]) < (REST_TOL if method == "xpbd" else 2.5e-3)  # spring: 1.8 mm
-    assert abs(_axis_z(ts[10:14])) > 1 - 1e-4 and abs(ts[7] - 0.005) < 2e-3  # flat, not slid off
+    assert abs(axis_z(ts[10:14])) > 1 - 1e-4 and abs(ts[7] - 0.005) < 2e-3  # flat, not slid off
 
 
 @pytest.mark.parametrize("method", METHODS)
