@@ -47,7 +47,7 @@ def test_env_defaults_run_5000_substeps(name):
 SOAK_NUM_ENVS, SOAK_STEPS = 256, 100
 # The Ants then run on without resets under one constant random control each, as scripts/bench_physics.py runs them,
 # where they used to diverge: 300 physics steps (3 s), within which the old limits had let the median env's hinges
-# 53 degrees past their ranges (docs/stability.md, "What diverged before"); held limits stay within ~5 degrees.
+# 53 degrees past their ranges (docs/stability.md, "Joint limits and held gains"); held limits stay within ~5 degrees.
 TUMBLE_PHYSICS_STEPS, TUMBLE_LIMIT_OVERSHOOT_DEG = 300, 15.0
 
 
