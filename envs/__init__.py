@@ -29,7 +29,7 @@ PIXEL_ENVS = {
     # top-down RGB 48x48; the policy gets the arm's angles and rates, the target only through the image
     "reacher_pixels": ("reacher", dict(from_pixels=True, pixel_size=48, pixel_state="proprio",
                                        render_compile=True)),
-    # depth 48x48 from a camera riding on the cart, 4 stacked frames (120 ms: the pole's rate, docs/training.md);
+    # depth 48x48 from a camera riding on the cart, 4 stacked frames (120 ms: the pole's rate, docs/training_pixels.md);
     # the policy gets the cart's position and velocity, the pole's angle and rate only through the images
     "inverted_pendulum_pixels": ("inverted_pendulum", dict(from_pixels=True, pixel_size=48, pixel_state="proprio",
                                                            frame_stack=4, render_compile=True,

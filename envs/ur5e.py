@@ -72,7 +72,7 @@ class UR5eReach(TorchsimEnv):
     minus tool (world frame, metres), and target minus tool again in units of 5 cm, clipped to [-1, 1]. That last
     feature is what lets PPO close the final centimetres: after running normalisation the metre-scale error's 2 cm
     is ~0.05 of its spread, the clipped one's 2 cm is ~0.4 (without it the reach stalled at ~10 cm; with it 36% of
-    evaluation episodes ended within 2 cm after 0.5M steps, against 0%: docs/training.md). Reward: ``-|tool - target| - 0.01 |a|^2 + 1[|tool - target| < 0.02]``
+    evaluation episodes ended within 2 cm after 0.5M steps, against 0%: docs/training_robots.md). Reward: ``-|tool - target| - 0.01 |a|^2 + 1[|tool - target| < 0.02]``
     (the design in ``shared/reference/ur5e.md`` section 4; Brax v1 rewarded progress plus hits). Success: the
     tool ends the episode within 2 cm of the target (``goal_distance``). No termination. Reset: ``HOME`` +
     U(-0.1, 0.1) rad, rates 0.1 N(0, 1); the target stays fixed for the episode (``task``), drawn from a pool of
