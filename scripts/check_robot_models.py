@@ -6,6 +6,11 @@ Model set: every ``*.xml`` anywhere in the three packages; a file MuJoCo cannot 
 fragment, a robot or gripper part that robosuite assembles in code, a file whose assets are missing) is not a
 standalone model and is only counted. "Movable": ``nv > 0``; "with meshes": a mesh geom, colliding or not.
 
+Each model is checked as it is, and again with ``load_mjcf(max_hull_vertices=64)`` where that caps a colliding
+mesh's hull (``torchsim.io_mjcf.hull_caps``), MuJoCo rolling out the capped model too; the other models are the same
+with the option, and their rows are counted again as they are. Counts, verdicts and refusal causes are given both
+ways.
+
     OMP_NUM_THREADS=1 python scripts/check_robot_models.py                  # all, summary and table on stdout
     OMP_NUM_THREADS=1 python scripts/check_robot_models.py --write-docs     # and into docs/physics.md
     python scripts/check_robot_models.py --packages robosuite --match panda --budget 5
@@ -23,6 +28,8 @@ import torch
 
 from _docs import replace_section
 from check_third_party import DOCS, ROOT, check, fetch, progress_line, provenance, summary, table
+from torchsim.io_mjcf.hull_caps import colliding_meshes, hull_vertex_count
+from torchsim.io_mjcf.meshes import MAX_HULL_VERTICES
 
 SECTION = "## Robot models (issue 53)"
 # distribution -> (default version, folder searched inside the wheel)
@@ -69,6 +76,11 @@ def counts(rows: list[dict], models: dict, files: collections.Counter, packages:
     return "\n".join(lines)
 
 
+def capped(m: mujoco.MjModel) -> bool:
+    """Whether ``load_mjcf(max_hull_vertices=MAX_HULL_VERTICES)`` caps a colliding mesh's hull of ``m``."""
+    return any(hull_vertex_count(m, mesh) > MAX_HULL_VERTICES for mesh in colliding_meshes(m))
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "torchsim" / "third_party")
@@ -83,7 +95,7 @@ def main():
     versions = {dist: getattr(args, dist) for dist in PACKAGES}
     found, files = standalone_models(args.cache, versions, args.packages, args.match)
     print(f"{len(found)} standalone models of {sum(files.values())} xml files", flush=True)
-    rows, models, t0 = [], {}, time.perf_counter()
+    rows, capped_rows, models, t0 = [], [], {}, time.perf_counter()
     for dist, path, model in found:
         folder = fetch(args.cache, dist, versions[dist]) / PACKAGES[dist][1]
         name = str(path.relative_to(folder).with_suffix(""))
@@ -91,12 +103,26 @@ def main():
         models[row["key"]] = model
         rows.append(row)
         print(progress_line(row), flush=True)
+    print(f"again with max_hull_vertices={MAX_HULL_VERTICES}, where it caps a hull", flush=True)
+    caps = [capped(model) for _, _, model in found]
+    for (dist, path, _), row, cap in zip(found, rows, caps):
+        if cap:
+            row = check(dist, path, args.budget, max_hull_vertices=MAX_HULL_VERTICES) | dict(model=row["model"],
+                                                                                            key=row["key"])
+            print(progress_line(row), flush=True)
+        capped_rows.append(row)
     total = time.perf_counter() - t0
+    changed = [row for row, cap in zip(capped_rows, caps) if cap]
     text = "\n\n".join([
-        provenance("check_robot_models.py", {d: versions[d] for d in args.packages}, total) + " Model set and "
-        "counts: the script's docstring; rollout and verdict: `scripts/check_third_party.py`'s (each torchsim "
-        f"rollout cut after {args.budget:g} s, the steps column says where).",
-        counts(rows, models, files, args.packages), summary(rows), table(rows)])
+        provenance("check_robot_models.py", {d: versions[d] for d in args.packages}, total) + " Model set, counts "
+        "and the second count: the script's docstring; rollout and verdict: `scripts/check_third_party.py`'s (each "
+        f"torchsim rollout cut after {args.budget:g} s, the steps column says where).",
+        "As the models are:", counts(rows, models, files, args.packages), summary(rows),
+        f"With `load_mjcf(max_hull_vertices={MAX_HULL_VERTICES})` (MuJoCo's `maxhullvert` on the colliding meshes "
+        f"whose hulls have more vertices; {len(changed)} models have such meshes):",
+        counts(capped_rows, models, files, args.packages), summary(capped_rows),
+        "As the models are:", table(rows),
+        f"The {len(changed)} models with `max_hull_vertices={MAX_HULL_VERTICES}`:", table(changed)])
     print("\n" + text)
     if args.write_docs:
         replace_section(DOCS, SECTION, text)

@@ -18,7 +18,7 @@ import torchsim
 from models import F64, METHODS, rest_pose
 from torchsim import lanes
 from torchsim.collision import contacts
-from torchsim.io_mjcf import UnsupportedMJCFError
+from torchsim.io_mjcf import UnsupportedMJCFError, mujoco_model
 from torchsim.io_mjcf.meshes import MAX_HULL_VERTICES
 from torchsim.kinematics import with_world
 from torchsim.system import points_per_pair
@@ -28,11 +28,14 @@ CUBE = " ".join(f"{x} {y} {z}" for x in (-0.1, 0.1) for y in (-0.1, 0.1) for z i
 # 7 points in general position, all on the hull, and an interior point the hull leaves out
 IRREGULAR = ("0 0 0.12  0.1 0.02 -0.03  -0.05 0.09 -0.04  -0.06 -0.08 -0.02  0.02 -0.01 -0.09  0.07 0.07 0.05  "
              "-0.08 0.01 0.06  0.01 0.01 0.01")
+# 100 random points on a 10 cm sphere, all on its hull: more hull vertices than torchsim collides
+_BALL_POINTS = np.random.default_rng(0).normal(size=(100, 3))
+BALL = " ".join(map(str, (0.1 * _BALL_POINTS / np.linalg.norm(_BALL_POINTS, axis=1, keepdims=True)).ravel()))
 SCENE = """
 <mujoco>
   <option gravity="0 0 0"/>
   <asset><mesh name="tet" vertex="{tet}"/><mesh name="cube" vertex="{cube}"/><mesh name="irregular" vertex="{irr}"/>
-  </asset>
+    <mesh name="ball" vertex="{ball}"/></asset>
   <worldbody>
     {floor}
     <body name="a" pos="{pos_a}" euler="{euler_a}"><freejoint/><geom name="a" {geom_a}/></body>
@@ -42,6 +45,7 @@ SCENE = """
 """
 FLOOR = '<geom name="floor" type="plane" size="2 2 0.1"/>'
 GEOMS = {"tet": 'type="mesh" mesh="tet"', "cube": 'type="mesh" mesh="cube"', "irregular": 'type="mesh" mesh="irregular"',
+         "ball": 'type="mesh" mesh="ball"',
          "sphere": 'type="sphere" size="0.05"', "capsule": 'type="capsule" size="0.03 0.08"',
          "box": 'type="box" size="0.1 0.1 0.1"', "cylinder": 'type="cylinder" size="0.05 0.04"',
          "ellipsoid": 'type="ellipsoid" size="0.05 0.04 0.03"'}
@@ -52,25 +56,27 @@ def _scene(geom_a, pos_a="0 0 0", euler_a="0 0 0", geom_b=None, pos_b="0 0 0", e
     """``geom_a`` on a free body; on the floor without ``geom_b``, otherwise against ``geom_b`` on a second."""
     body_b = (f'<body name="b" pos="{pos_b}" euler="{euler_b}"><freejoint/><geom name="b" {GEOMS[geom_b]}/></body>'
               if geom_b else "")
-    return SCENE.format(tet=TET, cube=CUBE, irr=IRREGULAR, floor="" if geom_b else FLOOR, pos_a=pos_a,
+    return SCENE.format(tet=TET, cube=CUBE, irr=IRREGULAR, ball=BALL, floor="" if geom_b else FLOOR, pos_a=pos_a,
                         euler_a=euler_a, geom_a=GEOMS[geom_a], body_b=body_b)
 
 
-def _ours(xml, qpos):
-    """torchsim's contacts at MuJoCo ``qpos (B, nq)``: the System and (pos (3, C, B), normal, distance (C, B))."""
-    sys = torchsim.load_mjcf(xml, dtype=F64)
+def _ours(xml, qpos, **options):
+    """torchsim's contacts at MuJoCo ``qpos (B, nq)``: the System and (pos (3, C, B), normal, distance (C, B));
+    ``options``: ``load_mjcf``'s."""
+    sys = torchsim.load_mjcf(xml, dtype=F64, **options)
     state = torchsim.init(sys, torch.as_tensor(qpos), torch.zeros(len(qpos), sys.nv, dtype=F64))
     con = contacts(sys, with_world(*(lanes.to_lanes(x, 1) for x in state[:4])))
     return sys, con.pos.numpy(), con.normal.numpy(), -con.depth.numpy()
 
 
-def _compare(xml):
+def _compare(xml, **options):
     """MuJoCo's contacts and ours (those touching: distance <= 0) at the model's pose, as (pos (n, 3), normal from
-    torchsim's geom b towards a (n, 3), distance (n,)), each sorted by distance."""
-    m = mujoco.MjModel.from_xml_string(xml)
+    torchsim's geom b towards a (n, 3), distance (n,)), each sorted by distance; ``options``: ``load_mjcf``'s (MuJoCo's
+    side is the model it builds the System from)."""
+    m = mujoco_model(xml, options.get("max_hull_vertices"))
     d = mujoco.MjData(m)
     mujoco.mj_forward(m, d)
-    sys, pos, normal, dist = _ours(xml, d.qpos[None])
+    sys, pos, normal, dist = _ours(xml, d.qpos[None], **options)
     (group,) = sys.contact_groups
     geom_b = int(group.geom_b[0])
     # MuJoCo's frame normal points from its geom1 to its geom2
@@ -190,11 +196,11 @@ def test_tilted_cylinder_on_a_face():
     assert abs(ours[0][2] - exact) < 1e-6 and abs(mujoco.mj_geomDistance(m, d, 0, 1, 1.0, None) - exact) < 1e-6
 
 
-def _sampled(geom_a, geom_b, count=300, band=(-0.01, 0.02), seed=0):
+def _sampled(geom_a, geom_b, count=300, band=(-0.01, 0.02), seed=0, **options):
     """MuJoCo's ``mj_geomDistance`` and ours (the smallest over the pair's points) on random poses with MuJoCo's
-    distance in ``band`` [m]."""
+    distance in ``band`` [m]; ``options``: ``load_mjcf``'s."""
     xml = _scene(geom_a, geom_b=geom_b, pos_b="0 0 1")
-    m = mujoco.MjModel.from_xml_string(xml)
+    m = mujoco_model(xml, options.get("max_hull_vertices"))
     d = mujoco.MjData(m)
     rng = np.random.default_rng(seed)
     reach = m.geom_rbound[0] + m.geom_rbound[1]
@@ -211,7 +217,7 @@ def _sampled(geom_a, geom_b, count=300, band=(-0.01, 0.02), seed=0):
         if band[0] < dist < band[1]:
             poses.append(q)
             mj.append(dist)
-    _, _, _, dist = _ours(xml, np.array(poses))
+    _, _, _, dist = _ours(xml, np.array(poses), **options)
     return np.array(mj), dist.min(0)
 
 
@@ -244,12 +250,22 @@ def test_hulls_never_too_shallow(geom_a, exact):
     assert (np.abs(short) < 1e-6).mean() > exact
 
 
+# an ellipsoid dropped tilted onto a cube mesh fixed in the world, turned 20 degrees
+EGG_ON_CUBE = f"""<mujoco><option timestep="0.002"/><asset><mesh name="cube" vertex="{CUBE}"/></asset><worldbody>
+  <geom type="mesh" mesh="cube" euler="0 0 20"/>
+  <body pos="0.01 0.02 0.14" euler="8 -5 0"><freejoint/><geom type="ellipsoid" size="0.05 0.04 0.03"/></body>
+</worldbody></mujoco>"""
+
+
+@pytest.mark.parametrize("scene", ["irregular_on_floor", "egg_on_cube"])
 @pytest.mark.parametrize("method", METHODS)
-def test_drop_comes_to_rest(method):
-    """The irregular mesh dropped 2 cm, tilted, falls onto its face and rests at MuJoCo's height and attitude:
-    within 1 mm (MuJoCo's soft contact rests ~0.1-0.2 mm deep, the spring method's up to 0.75 mm, XPBD on the
-    surface: as ``test_round_geoms``) and 1 degree; a wrong hull face or vertex moves it by centimetres."""
-    xml = _scene("irregular", pos_a="0 0 0.12", euler_a="8 -5 0").replace('gravity="0 0 0"', 'timestep="0.002"')
+def test_drop_comes_to_rest(method, scene):
+    """The irregular mesh dropped 2 cm onto the floor, or an ellipsoid 1 cm onto a cube mesh, tilted, falls and
+    rests at MuJoCo's height and attitude: within 1 mm (MuJoCo's soft contact rests ~0.1-0.4 mm deep, the spring
+    method's up to 0.75 mm, XPBD on the surface: as ``test_round_geoms``) and 1 degree (measured for the ellipsoid:
+    0.4 mm and 0.6-0.7 degrees); a wrong hull face or vertex moves it by centimetres."""
+    xml = (EGG_ON_CUBE if scene == "egg_on_cube" else
+           _scene("irregular", pos_a="0 0 0.12", euler_a="8 -5 0").replace('gravity="0 0 0"', 'timestep="0.002"'))
     mj, ours = (q[:7] for q in rest_pose(xml, method, seconds=0.6))
     assert abs(mj[2] - ours[2]) < 1e-3
     turn = 2 * np.degrees(np.arccos(min(1.0, abs(float(np.dot(mj[3:7], ours[3:7]))))))
@@ -257,44 +273,111 @@ def test_drop_comes_to_rest(method):
 
 
 def test_kernel_runs_a_mesh_scene():
-    """The generated C++ step (``kernel`` strategy) on a tetrahedron sunk 2 mm into the floor, a second one on it
-    and a capsule across that one's apex, each mesh pair touching from the start: the same states as the reference
-    step, by test_strategies' bound."""
+    """The generated C++ step (``kernel`` strategy) on a tetrahedron sunk 2 mm into the floor, a second one on it,
+    a capsule across that one's apex and an ellipsoid 1.7 mm into its side, each mesh pair touching from the start:
+    the same states as the reference step, by test_strategies' bound."""
     from test_strategies import _check_against_reference
 
-    xml = SCENE.format(tet=TET, cube=CUBE, irr=IRREGULAR, floor=FLOOR, pos_a="0 0 0.015", euler_a="10 5 0",
+    xml = SCENE.format(tet=TET, cube=CUBE, irr=IRREGULAR, ball=BALL, floor=FLOOR, pos_a="0 0 0.015", euler_a="10 5 0",
                        geom_a=GEOMS["tet"], body_b=(
                            '<body pos="-0.02 -0.03 0.21" euler="4 0 10"><freejoint/><geom type="mesh" mesh="tet"/>'
                            '</body><body pos="0.02 0.02 0.415" euler="0 90 0"><freejoint/>'
-                           '<geom type="capsule" size="0.03 0.08"/></body>')).replace('gravity="0 0 0"', "")
+                           '<geom type="capsule" size="0.03 0.08"/></body><body pos="-0.06 -0.03 0.21" euler="0 30 0">'
+                           '<freejoint/><geom type="ellipsoid" size="0.05 0.04 0.03"/></body>')
+                       ).replace('gravity="0 0 0"', "")
     sys = torchsim.load_mjcf(xml, dtype=F64)
     start = torchsim.init(sys, sys.q0[None].repeat(2, 1), 0.2 * torch.randn(2, sys.nv, dtype=F64,
                                                                           generator=torch.Generator().manual_seed(0)))
     depth = contacts(sys, with_world(*(lanes.to_lanes(x, 1) for x in start[:4]))).depth[:, 0]
     touching = {g.kind for g, d in zip(sys.contact_groups, depth.split(
         [points_per_pair(g.kind, sys.geom_hull_vert.shape[1]) * len(g.geom_a) for g in sys.contact_groups])) if d.max() > 0}
-    assert touching == {"mesh_plane", "mesh_mesh", "capsule_mesh"}
+    assert touching == {"mesh_plane", "mesh_mesh", "capsule_mesh", "ellipsoid_mesh"}
     stepper = torchsim.Stepper(sys, "kernel", threads=1)
     _check_against_reference("mesh scene kernel", sys, stepper, start, torch.zeros(20, 2, 0, dtype=F64), 2, 1e-3)
     assert stepper.strategy == "kernel"  # no fallback
 
 
 def test_large_hull_refused_by_name():
-    """A mesh whose hull has more vertices than the bound is refused naming the geom, its count and the bound;
-    with MuJoCo's ``maxhullvert`` at the bound it loads."""
-    rng = np.random.default_rng(0)
-    points = rng.normal(size=(100, 3))
-    points = 0.1 * points / np.linalg.norm(points, axis=1, keepdims=True)  # all on a sphere: all on the hull
-    xml = _scene("sphere", geom_b="cube", pos_b="1 0 0").replace(
-        f'<mesh name="cube" vertex="{CUBE}"/>', f'<mesh name="cube" vertex="{" ".join(map(str, points.ravel()))}"/>')
+    """A mesh whose hull has more vertices than the bound is refused naming the geom, its count, the bound and both
+    caps (the load option, MuJoCo's ``maxhullvert``); with either it loads, the option capping that mesh alone and
+    saying so once; a cap above the bound is refused."""
+    xml = _scene("sphere", geom_b="ball", pos_b="1 0 0")
     with pytest.raises(UnsupportedMJCFError, match=f"'b' can collide and its convex hull has 100 vertices, more "
-                                                   f"than the {MAX_HULL_VERTICES}"):
+                                                   f"than the {MAX_HULL_VERTICES}.*max_hull_vertices=.*maxhullvert"):
         torchsim.load_mjcf(xml)
-    sys = torchsim.load_mjcf(xml.replace('<mesh name="cube"', f'<mesh name="cube" maxhullvert="{MAX_HULL_VERTICES}"'))
+    sys = torchsim.load_mjcf(xml.replace('<mesh name="ball"', f'<mesh name="ball" maxhullvert="{MAX_HULL_VERTICES}"'))
     assert sys.geom_hull_real.sum().item() == MAX_HULL_VERTICES
+    with pytest.warns(UserWarning) as caught:
+        sys = torchsim.load_mjcf(xml, max_hull_vertices=40)
+    (warning,) = [w for w in caught if "max_hull_vertices" in str(w.message)]
+    assert "caps the convex hulls of 1 colliding meshes (their vertices before): 'ball' (100)" in str(warning.message)
+    assert sys.geom_hull_real.sum().item() == 40
+    m = mujoco_model(xml, 40)
+    assert m.mesh_graph[m.mesh_graphadr[3]] == 40 and m.mesh_graph[m.mesh_graphadr[2]] == 7  # the irregular: as it was
+    for bad in (MAX_HULL_VERTICES + 1, 3, 20.0, True):
+        with pytest.raises(ValueError, match="max_hull_vertices must be an integer from 4"):
+            torchsim.load_mjcf(xml, max_hull_vertices=bad)
 
 
-def test_ellipsoid_mesh_refused_by_name():
-    xml = _scene("ellipsoid", geom_b="cube", pos_b="1 0 0")
-    with pytest.raises(UnsupportedMJCFError, match="ellipsoid-mesh contacts are not implemented"):
-        torchsim.load_mjcf(xml)
+def test_capped_hull_on_plane():
+    """The ball capped at 64 hull vertices, tilted and sunk 1 cm into the floor: MuJoCo's contacts (on the capped
+    model) are ours, ours exactly the capped hull's vertices below the floor, to round-off."""
+    xml = _scene("ball", pos_a="0 0 0.09", euler_a="25 -30 20")
+    mj, ours, kind = _compare(xml, max_hull_vertices=MAX_HULL_VERTICES)
+    assert kind == "mesh_plane" and mj
+    assert all(_matched(c, ours) for c in mj) and _matched(ours[0], mj[:1])
+    m = mujoco_model(xml, MAX_HULL_VERTICES)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    mesh = m.geom_dataid[1]
+    adr, numvert = m.mesh_graphadr[mesh], m.mesh_graph[m.mesh_graphadr[mesh]]
+    hull = m.mesh_vert[m.mesh_vertadr[mesh] + m.mesh_graph[adr + 2 + numvert:adr + 2 + 2 * numvert]]
+    world = d.geom_xpos[1] + hull @ d.geom_xmat[1].reshape(3, 3).T
+    assert numvert == MAX_HULL_VERTICES and len(ours) == int((world[:, 2] <= 0).sum()) > 0
+
+
+def test_capped_hull_against_box():
+    """A box pressed into the capped ball: MuJoCo's deepest contact on the capped model is one of ours (1 um, its
+    solver's tolerance); and on 300 sampled poses from 1 cm inside to 2 cm apart the box's distance from the capped
+    hull is never more than MuJoCo's ``mj_geomDistance`` on that model (1 um), and exact (1 um) on most, as
+    ``test_hulls_never_too_shallow`` (measured: exact on 92 %, short by at most 5.8 mm)."""
+    mj, ours, kind = _compare(_scene("box", pos_a="0.02 0.03 0.195", euler_a="10 20 30", geom_b="ball"),
+                              max_hull_vertices=MAX_HULL_VERTICES)
+    assert kind == "box_mesh" and mj
+    assert _matched(mj[0], ours, tol=1e-6)
+    mj, ours = _sampled("box", "ball", max_hull_vertices=MAX_HULL_VERTICES)
+    short = mj - ours
+    assert short.min() > -1e-6
+    assert (np.abs(short) < 1e-6).mean() > 0.5
+
+
+def test_ellipsoid_presses_a_face():
+    """An ellipsoid tilted and pressed 8 mm into the cube's top face: one contact, at MuJoCo's distance and normal
+    (1 um, 1e-5: its convex solver's tolerance), at the ellipsoid's lowest point lifted half the depth (1e-9 m)."""
+    xml = _scene("ellipsoid", pos_a="0.02 0.03 0.125", euler_a="10 20 0", geom_b="cube")
+    mj, ours, kind = _compare(xml)
+    assert kind == "ellipsoid_mesh" and len(mj) == len(ours) == 1
+    (_, mj_normal, mj_dist), (pos, normal, dist) = mj[0], ours[0]  # MuJoCo's point: its solver's, 8e-5 m off
+    assert abs(dist - mj_dist) < 1e-6 and np.abs(normal - mj_normal).max() < 1e-5
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    mujoco.mj_forward(m, d)
+    rot, semi = d.geom_xmat[0].reshape(3, 3), m.geom_size[0]
+    down = semi * (rot.T @ [0, 0, -1.0])  # the support point along -z: R S^2 R^T d / |S R^T d|
+    lowest = d.geom_xpos[0] + rot @ (semi * down / np.linalg.norm(down))
+    assert abs(dist - (lowest[2] - np.float32(0.1))) < ROUNDOFF  # the top face, at the float32 vertices' height
+    assert np.abs(pos - (lowest - [0, 0, 0.5 * dist])).max() < ROUNDOFF and np.abs(normal - [0, 0, 1]).max() < ROUNDOFF
+
+
+@pytest.mark.parametrize("hull, options", [("irregular", {}), ("tet", {}), ("cube", {}),
+                                           ("ball", dict(max_hull_vertices=MAX_HULL_VERTICES))])
+def test_ellipsoid_never_too_shallow(hull, options):
+    """An ellipsoid's distance from a hull (its separating-axis contact over the faces' normals and the ellipsoid's
+    normals nearest the vertices and the edges at the nearest vertex): never more than MuJoCo's (1 um), exact (1 um)
+    where the nearest feature is a face, a vertex or an edge at the nearest vertex. Measured, 300 poses from 1 cm
+    inside to 2 cm apart: exact on 99 % (irregular), 100 % (tetrahedron, cube), 99 % (ball capped at 64 vertices);
+    short at most by 2.8 mm (irregular, 1 pose, 1 cm deep) and 14 um (ball)."""
+    mj, ours = _sampled("ellipsoid", hull, **options)
+    short = mj - ours
+    assert short.min() > -1e-6
+    assert (np.abs(short) < 1e-6).mean() > 0.95

@@ -22,7 +22,10 @@ Pairs (``a`` the lower-ranked geom, normals from ``b`` towards ``a``; ``V`` the 
 - mesh-mesh: each hull's vertices against the other's faces, and the separating-axis contact (``1 + 2 V``);
 - cylinder-mesh: the cylinder's 8 cap rim points against the hull's faces, the hull's vertices against the
   cylinder and a separating-axis contact (hull face normals, the cylinder's axis and its cross products with the
-  edges at the hull's support vertex) (``9 + V``, :func:`_cylinder_hull`), never too shallow.
+  edges at the hull's support vertex) (``9 + V``, :func:`_cylinder_hull`), never too shallow;
+- ellipsoid-mesh: one separating-axis contact (1 point, as ellipsoid-box), over the hull's face normals and the
+  ellipsoid's normals nearest each hull vertex and each edge at the vertex nearest it (:func:`_ellipsoid_hull`),
+  never too shallow.
 The vertices alone miss edge-edge crossings (no vertex of either inside the other); the separating-axis contact
 finds them, over the face normals and the cross products of the edges at the support vertices
 (``EDGE_ROUNDS`` rounds), never too shallow.
@@ -113,6 +116,8 @@ def pair_contacts(kind, pa, rot_a, sa, hull_a, pb, rot_b, sb, hull_b, box_corner
         return _against_hull(torch.stack((p0, p1, deepest), -2), sa[0].unsqueeze(-2), pb, rot_b, hull_b[3])
     vert_b, real_b, edge_b, plane_b = hull_b
     side_b = _world_hull(pb, rot_b, vert_b, real_b, edge_b, plane_b)
+    if kind == "ellipsoid_mesh":
+        return _ellipsoid_hull(pa, rot_a, sa, side_b)
     if kind == "cylinder_mesh":
         return _cylinder_hull(pa, rot_a, sa, side_b, real_b, pb, rot_b, plane_b)
     if kind == "box_mesh":
@@ -137,7 +142,7 @@ def _cylinder_hull(pa, rot_a, sa, side_b, real_b, pb, rot_b, plane_b):
     a face on its cap or its side), the hull's vertices against the cylinder (exact), and a separating-axis
     contact (:func:`_cylinder_separation`) for a hull edge across the cylinder's side."""
     verts_b, _, edges_b, faces_b = side_b
-    normal, sep = _cylinder_axis(pa, rot_a, sa, verts_b, faces_b)
+    normal, sep = _round_axis("cylinder", pa, rot_a, sa, verts_b, faces_b)
     pt_a, n_a, d_a = _against_hull(collision_round.plane_points("cylinder", pa, rot_a, sa, normal), 0.0, pb, rot_b,
                                    plane_b)
     pt_b, n_b, d_b = collision_round.point_cylinder(verts_b, 0.0, pa.unsqueeze(-2), rot_a.unsqueeze(-2),
@@ -147,11 +152,12 @@ def _cylinder_hull(pa, rot_a, sa, side_b, real_b, pb, rot_b, plane_b):
             torch.cat((d_a, _masked(d_b, real_b), d_s), -2))
 
 
-def _cylinder_axis(pa, rot_a, sa, verts_b, axes):
-    """The axis of ``axes (3, P, N, B)`` (unit, hull b towards cylinder a) that separates a cylinder and a hull most
-    (an even blend where axes tie), and that separation ``(P, B)``: the cylinder's lowest point along an axis is
-    on a cap rim, the deepest of the 8 points ``collision_round.plane_points`` gives."""
-    rims = collision_round.plane_points("cylinder", pa.unsqueeze(-2), rot_a.unsqueeze(-2), sa.unsqueeze(-2), axes)
+def _round_axis(shape, pa, rot_a, sa, verts_b, axes):
+    """The axis of ``axes (3, P, N, B)`` (unit, hull b towards a) that separates a cylinder or ellipsoid ``a`` and a
+    hull most (an even blend where axes tie), and that separation ``(P, B)``: a's lowest point along an axis is the
+    deepest of the points ``collision_round.plane_points`` gives (a cylinder's 8 cap rim points, an ellipsoid's
+    support point)."""
+    rims = collision_round.plane_points(shape, pa.unsqueeze(-2), rot_a.unsqueeze(-2), sa.unsqueeze(-2), axes)
     sep = (spatial.dot(rims, axes.unsqueeze(-2)).amin(-2)
            - spatial.dot(verts_b.unsqueeze(-3), axes.unsqueeze(-2)).amax(-2))  # (P, N, B)
     best = sep.amax(-2)
@@ -174,7 +180,7 @@ def _cylinder_separation(pa, rot_a, sa, side_b, real_b, face_normal, face_sep):
     parallel = square <= 1e-6 * spatial.dot(edge_b, edge_b)  # along the axis: no axis, the face normal instead
     cross = torch.where(parallel, face_normal.unsqueeze(-2), cross * torch.rsqrt(square.clamp_min(1e-30)))
     axes = torch.cat((cross, -cross, axis.unsqueeze(-2), -axis.unsqueeze(-2)), -2)
-    edge_normal, edge_sep = _cylinder_axis(pa, rot_a, sa, verts_b, axes)
+    edge_normal, edge_sep = _round_axis("cylinder", pa, rot_a, sa, verts_b, axes)
     across = edge_sep > face_sep
     normal, sep = torch.where(across, edge_normal, face_normal), torch.maximum(edge_sep, face_sep)
     rim = collision_round.plane_points("cylinder", pa, rot_a, sa, normal)  # (3, P, 8, B)
@@ -183,6 +189,39 @@ def _cylinder_separation(pa, rot_a, sa, side_b, real_b, face_normal, face_sep):
     low_a = (rim * deepest).sum(-2) / deepest.sum(-2)
     high_b = (verts_b * _extreme(verts_b, real_b.to(verts_b.dtype), normal, 1.0)).sum(-2)
     point = torch.where(across, 0.5 * (low_a + high_b), low_a - 0.5 * sep * normal)
+    return point.unsqueeze(-2), normal.unsqueeze(-2), sep.unsqueeze(-2)
+
+
+def _ellipsoid_hull(pa, rot_a, sa, side_b):
+    """An ellipsoid ``a`` against a hull ``b`` (:func:`_world_hull`): one separating-axis contact (point, normal
+    b->a ``(3, P, 1, B)``, distance ``(P, 1, B)``), the best of three sets of axes. The hull's face normals: exact
+    where the ellipsoid's nearest point (or deepest) is over a face. The ellipsoid's normals at its points nearest
+    each hull vertex (``collision_round.point_ellipsoid``): exact where a vertex is the hull's nearest feature.
+    Then the ellipsoid's normals at its points nearest the edges at the hull vertex nearest it (each edge's point
+    nearest the ellipsoid, ``collision_round.segment_point``), squared to the edge: exact where that edge is the
+    nearest feature. Every axis's separation is a lower bound on the signed distance, so the contact is never too
+    shallow; elsewhere (the nearest feature an edge not at that vertex, or deep inside, where the normal at a
+    nearest point is not the shallowest way out) it errs deep. The point is midway across the gap from the
+    ellipsoid's support point along the normal, as on a plane."""
+    verts_b, real_b, edges_b, faces_b = side_b
+    ellipsoid = pa.unsqueeze(-2), rot_a.unsqueeze(-2), sa.unsqueeze(-2)
+    _, vert_normal, vert_dist = collision_round.point_ellipsoid(verts_b, 0.0, *ellipsoid)  # ellipsoid -> vertex
+    normal, sep = _round_axis("ellipsoid", pa, rot_a, sa, verts_b, torch.cat((faces_b, -vert_normal), -2))
+    support = _largest(-vert_dist, real_b, one=True)  # (P, V, B)
+    start = (verts_b * support).sum(-2).unsqueeze(-2)  # (3, P, 1, B)
+    edges = (edges_b * support.unsqueeze(-2)).sum(-3)  # (3, P, D, B)
+    nearest = collision_round.segment_point("ellipsoid", start.expand_as(edges), start + edges, *ellipsoid)
+    _, edge_normal, _ = collision_round.point_ellipsoid(nearest, 0.0, *ellipsoid)
+    # square to the edge: the bisection leaves the point off by up to 2^-11 of the edge, which tilts the normal, and
+    # a tilted axis would lose the edge's half length times the tilt
+    along = edges * torch.rsqrt(spatial.dot(edges, edges).clamp_min(1e-30))  # a zero edge (none): zero
+    square = edge_normal - spatial.dot(edge_normal, along) * along
+    length = spatial.safe_norm(square)
+    edge_normal = torch.where(length > 1e-6, square / length, edge_normal)  # along the edge: no square axis
+    edge_normal, edge_sep = _round_axis("ellipsoid", pa, rot_a, sa, verts_b, -edge_normal)
+    normal = torch.where(edge_sep > sep, edge_normal, normal)
+    sep = torch.maximum(edge_sep, sep)
+    point = pa - collision_round.offset("ellipsoid", rot_a, sa, normal) - 0.5 * sep * normal
     return point.unsqueeze(-2), normal.unsqueeze(-2), sep.unsqueeze(-2)
 
 
@@ -245,8 +284,13 @@ def _extreme(verts, real, normal, side, one=False):
     """Weights ``(P, V, B)`` summing to 1 over the (real) vertices ``(3, P, V, B)`` farthest along
     ``side * normal (3, P, B)``: an even blend of tied vertices, or with ``one`` the first of them (ties broken by
     ``TIE_BREAK`` per vertex index: a blend of two vertices' edges would be no edge)."""
-    proj = side * spatial.dot(verts, normal.unsqueeze(-2))
+    return _largest(side * spatial.dot(verts, normal.unsqueeze(-2)), real, one)
+
+
+def _largest(score, real, one=False):
+    """Weights ``(P, V, B)`` summing to 1 over the (real) vertices with the largest ``score (P, V, B)``: an even blend
+    of ties, or with ``one`` the first of them (:func:`_extreme`)."""
     if one:
-        proj = proj - TIE_BREAK * torch.arange(verts.shape[-2], dtype=proj.dtype, device=proj.device).unsqueeze(-1)
-    weight = (proj == proj.amax(-2, keepdim=True)).to(proj.dtype) * real
+        score = score - TIE_BREAK * torch.arange(score.shape[-2], dtype=score.dtype, device=score.device).unsqueeze(-1)
+    weight = (score == score.amax(-2, keepdim=True)).to(score.dtype) * real
     return weight / weight.sum(-2, keepdim=True)

@@ -18,7 +18,7 @@ POINTS_PER_PAIR = {
 #: Contact points per pair of the kinds with a mesh (``torchsim.collision_mesh``), as (fixed, per vertex of the
 #: model's largest hull): a mesh pair tests every vertex of its (padded) hulls.
 MESH_POINTS_PER_PAIR = {"mesh_plane": (0, 1), "sphere_mesh": (1, 0), "capsule_mesh": (3, 0), "box_mesh": (9, 1),
-                        "mesh_mesh": (1, 2), "cylinder_mesh": (9, 1)}
+                        "mesh_mesh": (1, 2), "cylinder_mesh": (9, 1), "ellipsoid_mesh": (1, 0)}
 
 
 def points_per_pair(kind: str, hull_vertices: int) -> int:

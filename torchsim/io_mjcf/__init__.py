@@ -33,15 +33,16 @@ is harmless):
   ``<exclude>``, ``<contact><pair>`` and MuJoCo's parent filter. Geoms of other types that can never touch
   anything (``contype``/``conaffinity`` filtered out) only contribute mass and are accepted with a warning.
 - mesh geoms collide as the convex hull MuJoCo compiles for them (``torchsim.io_mjcf.meshes``), with planes,
-  spheres, capsules, cylinders, boxes and meshes (``torchsim.collision_mesh``); a hull of more than 64 vertices is
-  refused by name (MuJoCo's ``maxhullvert`` caps it), as are ellipsoid-mesh pairs.
+  spheres, capsules, ellipsoids, cylinders, boxes and meshes (``torchsim.collision_mesh``); a hull of more than 64
+  vertices is refused by name, unless ``load_mjcf(max_hull_vertices=N)`` caps it (MuJoCo's ``maxhullvert``,
+  ``torchsim.io_mjcf.hull_caps``; :func:`mujoco_model` gives the capped MuJoCo model).
 - fluid: ``<option density viscosity wind>`` with MuJoCo's inertia-box model (``torchsim.fluid``); geoms with
   ``fluidshape="ellipsoid"`` are refused.
 - sensors: read from the State by ``torchsim.sensor``/``sensordata`` in MuJoCo's ``sensordata`` layout
   (``torchsim.io_mjcf.sensors`` lists the types computed; the others load with one warning and raise when read).
 
 One module per part of the model: ``subset`` (the checks), ``bodies``, ``joints``, ``actuators``, ``geoms``,
-``tendons``, ``equality``, ``fluid``, ``sensors``.
+``tendons``, ``equality``, ``fluid``, ``sensors``, ``hull_caps``.
 """
 
 import numbers
@@ -56,6 +57,7 @@ from torchsim.io_mjcf.bodies import fuse_bodies
 from torchsim.io_mjcf.equality import equality_fields, weld_fields
 from torchsim.io_mjcf.fluid import fluid_fields
 from torchsim.io_mjcf.geoms import geom_fields
+from torchsim.io_mjcf.hull_caps import capped_model
 from torchsim.io_mjcf.joints import joint_fields
 from torchsim.io_mjcf.sensors import sensor_fields
 from torchsim.io_mjcf.subset import UnsupportedMJCFError, check_supported
@@ -63,7 +65,7 @@ from torchsim.io_mjcf.tendons import tendon_fields
 from torchsim.methods import METHODS
 from torchsim.system import System
 
-__all__ = ["UnsupportedMJCFError", "load_mjcf"]
+__all__ = ["UnsupportedMJCFError", "load_mjcf", "mujoco_model"]
 
 
 def load_mjcf(
@@ -79,6 +81,7 @@ def load_mjcf(
     xpbd_iterations: int = 1,
     max_speed: float = 1e3,
     max_distance: float = 1e4,
+    max_hull_vertices: int | None = None,
 ) -> System:
     """Load an MJCF model from a file path or an XML string.
 
@@ -104,6 +107,10 @@ def load_mjcf(
         xpbd_iterations: XPBD only: projection passes (contacts, then joint colours) per substep.
         max_speed, max_distance: an env whose body speed [m/s] or distance from the origin [m] exceeds these is
             flagged as diverged.
+        max_hull_vertices: cap every colliding mesh's convex hull at this many vertices (4 to 64) with MuJoCo's
+            ``maxhullvert`` (one warning names the meshes capped); default: none, and a hull of more than 64
+            vertices is refused. The System is built from the capped MuJoCo model, :func:`mujoco_model`'s, which
+            is the one to compare against.
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {tuple(METHODS)}")
@@ -111,7 +118,7 @@ def load_mjcf(
         raise ValueError(f"unknown contact_model {contact_model!r}; expected 'impulse' or 'soft'")
     if contact_model == "soft" and method != "spring":
         raise ValueError(f"contact_model='soft' is implemented for the spring method only, not {method!r}")
-    m = _compile(source)
+    m = mujoco_model(source, max_hull_vertices)
     check_supported(m)
     if substeps is None:
         substeps = max(1, int(np.ceil(m.opt.timestep / METHODS[method].default_substep_timestep - 1e-9)))
@@ -139,10 +146,16 @@ def _check_substeps(substeps) -> None:
         raise ValueError(f"substeps must be a positive integer (substeps per <option timestep>), got {substeps!r}")
 
 
-def _compile(source) -> mujoco.MjModel:
+def mujoco_model(source, max_hull_vertices: int | None = None) -> mujoco.MjModel:
+    """The MuJoCo model :func:`load_mjcf` builds its System from, for ``source`` (a path or the XML text) and its
+    ``max_hull_vertices`` (``torchsim.io_mjcf.hull_caps``): with a cap, the model whose colliding meshes' hulls
+    MuJoCo compiled capped."""
     text = str(source)
-    if text.lstrip().startswith("<"):
-        return mujoco.MjModel.from_xml_string(text)
-    if not os.path.isfile(text):
+    is_xml = text.lstrip().startswith("<")
+    if not is_xml and not os.path.isfile(text):
         raise FileNotFoundError(f"MJCF file not found: {text}")
-    return mujoco.MjModel.from_xml_path(text)
+    m = (mujoco.MjModel.from_xml_string if is_xml else mujoco.MjModel.from_xml_path)(text)
+    if max_hull_vertices is None:
+        return m
+    return capped_model(m, lambda: (mujoco.MjSpec.from_string if is_xml else mujoco.MjSpec.from_file)(text),
+                        max_hull_vertices)

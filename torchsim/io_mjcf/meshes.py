@@ -27,7 +27,8 @@ from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
 #: Measured, eager, batch 1, float64, 2 shared cores: a step of robosuite's Panda, UR5e, xArm7 (16-22 mesh pairs,
 #: hulls capped at 64) takes 37-61 ms, TIAGo's (266 mesh pairs) 1.1 s. The robot models of dm_control, robosuite and gymnasium-robotics have
 #: hulls of 100-10600 vertices (median 232 over their colliding meshes); MuJoCo's ``maxhullvert`` caps a hull at
-#: compile time, and with it MuJoCo and torchsim collide the same hull (the refusal says so).
+#: compile time, and with it MuJoCo and torchsim collide the same hull (``load_mjcf(max_hull_vertices=64)`` sets it
+#: on every colliding mesh that needs it: ``torchsim.io_mjcf.hull_caps``).
 MAX_HULL_VERTICES = 64
 
 
@@ -73,8 +74,9 @@ def _hull(m: mujoco.MjModel, g: int) -> tuple[np.ndarray, list, np.ndarray]:
         mesh_name = name(m, mujoco.mjtObj.mjOBJ_MESH, mesh)
         raise UnsupportedMJCFError(
             f"mesh geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r} can collide and its convex hull has {len(ids)} "
-            f"vertices, more than the {MAX_HULL_VERTICES} torchsim collides; give its mesh a smaller hull with "
-            f"<mesh name={mesh_name!r} maxhullvert=\"{MAX_HULL_VERTICES}\"> (MuJoCo then collides that hull too)")
+            f"vertices, more than the {MAX_HULL_VERTICES} torchsim collides; cap the colliding meshes' hulls with "
+            f"load_mjcf(..., max_hull_vertices={MAX_HULL_VERTICES}), or this one's with <mesh name={mesh_name!r} "
+            f"maxhullvert=\"{MAX_HULL_VERTICES}\"> (MuJoCo's cap: MuJoCo then collides that hull too)")
     planes, plane_of = _planes(verts, triangles, verts[ids].mean(0))
     # the hull's edges: between triangles of two planes (a diagonal inside a merged face is none)
     sides = {}
