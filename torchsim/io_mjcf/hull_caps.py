@@ -41,7 +41,9 @@ def colliding_meshes(m: mujoco.MjModel) -> list[int]:
     """The meshes of the mesh geoms that can collide (in a candidate contact pair), sorted."""
     if m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONTACT):
         return []
-    geoms = {g for pair in candidate_pairs(m) for g in pair}
+    with warnings.catch_warnings():  # what the pairs ignore (condim) is said once, by the loader's geom_fields
+        warnings.simplefilter("ignore")
+        geoms = {g for pair in candidate_pairs(m) for g in pair}
     return sorted({int(m.geom_dataid[g]) for g in geoms if m.geom_type[g] == mujoco.mjtGeom.mjGEOM_MESH})
 
 
