@@ -51,11 +51,12 @@ def test_missing_file(tmp_path):
     assert str(path) in str(err.value)
 
 
-def test_spatial_tendon_unsupported():
-    xml = TWO_HINGES.format(extra="""<worldbody><site name="a" pos="0 0 2"/><site name="b" pos="0 0 3"/></worldbody>
-        <tendon><spatial name="cable"><site site="a"/><site site="b"/></spatial></tendon>""")
+def test_spatial_tendon_wrapping_unsupported():
+    xml = TWO_HINGES.format(extra="""<worldbody><site name="a" pos="0 0 2"/><site name="b" pos="0 0 3"/>
+        <geom name="wheel" type="sphere" size=".1" pos="0 .05 2.5" contype="0" conaffinity="0"/></worldbody>
+        <tendon><spatial name="cable"><site site="a"/><geom geom="wheel"/><site site="b"/></spatial></tendon>""")
     mujoco.MjModel.from_xml_string(xml)  # valid MJCF: the rejection is torchsim's
-    with pytest.raises(torchsim.UnsupportedMJCFError, match="'cable'.*spatial"):
+    with pytest.raises(torchsim.UnsupportedMJCFError, match="tendon 'cable': wrapping around geom 'wheel'"):
         torchsim.load_mjcf(xml)
 
 

@@ -18,7 +18,7 @@ Which types are computed, and why the others are not: ``torchsim.io_mjcf.sensors
 
 import torch
 
-from torchsim import actuators, lanes, spatial, tendons
+from torchsim import actuators, lanes, spatial, tendon_paths, tendons
 from torchsim.io_mjcf.sensors import FRAME_KINDS, SUBTREE_KINDS
 from torchsim.io_mjcf.subset import UnsupportedMJCFError
 from torchsim.kinematics import _addresses, with_world
@@ -136,13 +136,15 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
     batch = state.q.shape[0]
     q, qd = lanes.to_lanes(state.q), lanes.to_lanes(state.qd)
     q_dof, qd_dof = q.index_select(0, sys.dof_qpos), qd.index_select(0, sys.dof_qvel)
+    length, velocity = _tendon_coordinates(sys, state, q_dof, qd_dof)
     needs_ctrl = [g for g in groups if g.kind in FORCE_KINDS]
     if needs_ctrl:
         if ctrl is None:
             raise ValueError(f"the {needs_ctrl[0].kind} sensors read actuator forces, which depend on the "
                              "controls: pass ctrl (B, nu)")
         check(sys, "ctrl", ctrl, sys.nu, batch)
-        force = actuators.forces(sys, *actuators.coordinates(sys, q_dof, qd_dof), lanes.to_lanes(ctrl))
+        force = actuators.forces(sys, *actuators.coordinates(sys, q_dof, qd_dof, length, velocity),
+                                 lanes.to_lanes(ctrl))
     frames = _Frames(sys, state) if any(g.kind in FRAME_KINDS + SUBTREE_KINDS for g in groups) else None
     data = q.new_full((sys.nsensordata, batch), float("nan"))
     for group in groups:
@@ -154,9 +156,10 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
         elif kind == "ballangvel":
             values = qd.index_select(0, _addresses(group.obj, 3)).view(3, -1, batch)
         elif kind in ("tendonpos", "tendonvel"):
-            values = tendons.lengths(sys, q_dof if kind == "tendonpos" else qd_dof).index_select(0, group.obj)[None]
+            values = (length if kind == "tendonpos" else velocity).index_select(0, group.obj)[None]
         elif kind in ("actuatorpos", "actuatorvel"):
-            values = actuators.coordinates(sys, q_dof, qd_dof)[kind == "actuatorvel"].index_select(0, group.obj)[None]
+            values = actuators.coordinates(sys, q_dof, qd_dof, length, velocity)[kind == "actuatorvel"]
+            values = values.index_select(0, group.obj)[None]
         elif kind == "actuatorfrc":
             values = force.index_select(0, group.obj)[None]
         elif kind == "jointactuatorfrc":
@@ -170,10 +173,10 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
             values = _limit_values(kind == "jointlimitpos", q_dof, qd_dof, sys.dof_range, sys.dof_margin,
                                    sys.dof_limited).index_select(0, group.obj)[None]
         elif kind in ("tendonlimitpos", "tendonlimitvel"):
-            values = _limit_values(kind == "tendonlimitpos", tendons.lengths(sys, q_dof), tendons.lengths(sys, qd_dof),
+            values = _limit_values(kind == "tendonlimitpos", length, velocity,
                                    sys.ten_range, sys.ten_margin, sys.ten_limited).index_select(0, group.obj)[None]
         elif kind == "e_potential":
-            values = _potential_energy(sys, state, q_dof).expand(1, group.obj.shape[0], batch)
+            values = _potential_energy(sys, state, q_dof, length).expand(1, group.obj.shape[0], batch)
         elif kind == "e_kinetic":
             values = _kinetic_energy(sys, state, qd_dof).expand(1, group.obj.shape[0], batch)
         elif kind in SUBTREE_KINDS:
@@ -199,9 +202,20 @@ def _limit_values(position: bool, x: torch.Tensor, rate: torch.Tensor, bounds: t
     return torch.where(lower, at_lower, torch.where(upper, at_upper, 0.0))
 
 
-def _potential_energy(sys: System, state: State, q: torch.Tensor) -> torch.Tensor:
-    """MuJoCo's ``e_potential`` ``(1, B)`` [J] at dof coordinates ``q (D, B)``: ``-m g . x`` of every body, and the
-    joint and tendon springs' ``k x^2 / 2`` (a tendon's ``x`` beyond its dead band)."""
+def _tendon_coordinates(sys: System, state: State, q: torch.Tensor, qd: torch.Tensor):
+    """Every tendon's length and rate ``(T, B)``: fixed ones' from the dof coordinates and rates ``q, qd (D, B)``,
+    spatial ones' along their paths at the State's bodies (``torchsim.tendon_paths``)."""
+    length, velocity = tendons.lengths(sys, q), tendons.lengths(sys, qd)
+    if not sys.ten_spatial:  # static
+        return length, velocity
+    path = tendon_paths.paths(sys, with_world(*to_lanes_state(state)[:4]))
+    return length + path.length, velocity + path.velocity
+
+
+def _potential_energy(sys: System, state: State, q: torch.Tensor, length: torch.Tensor) -> torch.Tensor:
+    """MuJoCo's ``e_potential`` ``(1, B)`` [J] at dof coordinates ``q (D, B)`` and tendon lengths ``length (T, B)``:
+    ``-m g . x`` of every body, and the joint and tendon springs' ``k x^2 / 2`` (a tendon's ``x`` beyond its dead
+    band)."""
     x_pos = lanes.to_lanes(state.x_pos, 1)
     gravity = sys.gravity.view(3, 1, 1)
     weight = -(lanes.param(sys.body_mass, 1) * spatial.dot(gravity, x_pos)).sum(0, keepdim=True)
@@ -209,7 +223,6 @@ def _potential_energy(sys: System, state: State, q: torch.Tensor) -> torch.Tenso
     joints = 0.5 * (lanes.param(sys.dof_stiffness, 1) * stretch * stretch).sum(0, keepdim=True)
     energy = sys.sensor_static_potential + weight + joints
     if sys.ten_springs:  # static: a model without tendon springs has none to add
-        length = tendons.lengths(sys, q)
         lo, hi = lanes.param(sys.ten_lengthspring, 2).unbind(-2)
         stretch = torch.clamp(length - hi, min=0.0) + torch.clamp(length - lo, max=0.0)
         energy = energy + 0.5 * (lanes.param(sys.ten_stiffness, 1) * stretch * stretch).sum(0, keepdim=True)

@@ -133,15 +133,23 @@ class System:
         act_dof: (U,) dof index.  act_gear, act_gain: (U,), batchable.  act_bias: (U, 3), batchable.
         act_ctrl_range, act_force_range: (U, 2); act_ctrl_limited, act_force_limited: (U,) bool.
         act_tendon: (U,) tendon of an actuator with tendon transmission (its act_dof is -1), -1 for joint ones.
-    Fixed tendons (``T`` tendons of ``K`` joint terms, length ``L = sum_k coef_k q_k`` [m | rad]):
+    Tendons (``T``; a fixed tendon's length is ``L = sum_k coef_k q_k`` [m | rad] over ``K`` joint terms, a spatial
+    tendon's the sum of its ``S`` straight segments between sites over their pulley divisors,
+    ``torchsim.tendon_paths``):
         ten_wrap_tendon, ten_wrap_dof: (K,) each term's tendon and dof.  ten_wrap_coef: (K,).
+        ten_seg_tendon: (S,) each segment's tendon.  ten_seg_body: (2, S) the ext body of each segment's first and
+        second site.  ten_seg_pos: (2, S, 3) [m] those sites from their bodies' COMs, body frames (world frame on
+        the world).  ten_seg_scale: (S,) 1 / the divisor of the pulley branch holding the segment (1 without).
+        ten_is_spatial: (T,) bool, which tendons are spatial.  ten_spatial: whether there are any segments (static
+        structure: a model without skips their work).
         ten_stiffness: (T,) [N/m | N m/rad].  ten_damping: (T,) [N s/m].  ten_lengthspring: (T, 2) the spring's
         dead band (no force while ``lo <= L <= hi``).  ten_limited: (T,) bool.  ten_range: (T, 2).
         ten_margin: (T,) [m | rad].  ten_solimp: (T, 5) the limits' MuJoCo ``solimp``.  ten_limit_gains: (T, 2)
         MuJoCo's reference-acceleration gains ``K`` [1/s^2], ``B`` [1/s] from the limits' ``solref``.
         ten_invweight: (T,) [1/kg | 1/(kg m^2)] MuJoCo's tendon inverse inertia at ``qpos0`` (``tendon_invweight0``).
-        ten_springs, ten_limits, act_on_tendons: whether any tendon has stiffness or damping, any a limit, any
-        actuator tendon transmission (static structure: a model without them skips their work).
+        ten_springs, ten_limits, ten_path_limits, act_on_tendons: whether any tendon has stiffness or damping, any
+        fixed tendon a limit, any spatial tendon a limit, any actuator tendon transmission (static structure: a
+        model without them skips their work).
     Equality constraints (``E`` active MuJoCo ``<equality><tendon>``/``<joint>``, ``torchsim.equality``; each has two
     sides, rows ``e`` and ``E + e``, linear in the dof coordinates over ``K`` terms):
         eq_wrap_side, eq_wrap_dof: (K,) each term's side row and dof.  eq_wrap_coef: (K,).
@@ -297,10 +305,16 @@ class System:
     act_force_range: torch.Tensor
     act_force_limited: torch.Tensor
     act_tendon: torch.Tensor
-    # fixed tendons
+    # tendons
     ten_wrap_tendon: torch.Tensor
     ten_wrap_dof: torch.Tensor
     ten_wrap_coef: torch.Tensor
+    ten_seg_tendon: torch.Tensor
+    ten_seg_body: torch.Tensor
+    ten_seg_pos: torch.Tensor
+    ten_seg_scale: torch.Tensor
+    ten_is_spatial: torch.Tensor
+    ten_spatial: bool
     ten_stiffness: torch.Tensor
     ten_damping: torch.Tensor
     ten_lengthspring: torch.Tensor
@@ -312,6 +326,7 @@ class System:
     ten_invweight: torch.Tensor
     ten_springs: bool
     ten_limits: bool
+    ten_path_limits: bool
     act_on_tendons: bool
     # equality constraints
     eq_wrap_side: torch.Tensor

@@ -1,17 +1,21 @@
-"""Fixed tendons (MuJoCo ``<tendon><fixed>``): lengths, passive springs and dampers, soft limits, and the forces of
-actuators with tendon transmission, as generalized forces on the hinge and slide dofs.
+"""Tendons: lengths of fixed tendons, and the tendon forces of passive springs and dampers, soft limits and
+actuators with tendon transmission.
 
-A tendon's length is ``L = sum_k coef_k q_k`` [m | rad] and a tendon force ``f`` enters dof ``k`` as ``coef_k f``.
+A fixed tendon's (MuJoCo ``<tendon><fixed>``) length is ``L = sum_k coef_k q_k`` [m | rad] and a tendon force ``f``
+enters dof ``k`` as ``coef_k f``. A spatial tendon's length is its path through sites, and its force pulls on the
+sites' bodies (``torchsim.tendon_paths``); its springs, dampers and actuators are those of this module, its limits
+these with MuJoCo's ``a0`` term (below; ``tendon_paths.limit_wrench``).
 Tensors are in the lanes layout: dof quantities ``(D, B)``, tendon quantities ``(T, B)``, actuators ``(U, B)``.
 
-Limits follow MuJoCo's soft constraint without its solver: where a side of the range is violated (within
-``margin``), the limit pushes with ``f = max(0, imp / A0 * aref)``, ``aref = -B v - K imp r`` (``r <= 0``
-the violation, ``v`` its rate, ``imp`` the ``solimp`` impedance at ``r``, ``A0`` MuJoCo's tendon inverse inertia
+A fixed tendon's limits follow MuJoCo's soft constraint without its solver: where a side of the range is violated
+(within ``margin``), the limit pushes with ``f = max(0, imp / A0 * aref)``, ``aref = -B v - K imp r`` (``r <= 0`` the
+violation, ``v`` its rate, ``imp`` the ``solimp`` impedance at ``r``, ``A0`` MuJoCo's tendon inverse inertia
 at ``qpos0``). MuJoCo's force is ``(aref - a0) / (A + (1 - imp) / imp A0)``, with ``a0`` the acceleration every
 other force gives the tendon: this explicit force leaves out that term, so under a steady load ``F`` the limit
 settles at ``r = -A0 F / (imp^2 K)`` where MuJoCo's settles ``1 - imp`` times as deep (default ``solimp``: 5 %),
 while the free motion into and out of the limit (``a = -imp (B v + K imp r)``) is MuJoCo's (both where the
-tendon's inverse inertia ``A`` is ``A0``).
+tendon's inverse inertia ``A`` is ``A0``). A spatial tendon's limits take ``a0`` from the forces on the sites'
+bodies, ``imp / A0 (aref - a0)``: MuJoCo's force where ``A`` is ``A0``.
 """
 
 import torch
@@ -20,8 +24,14 @@ from torchsim import lanes
 from torchsim.system import System
 
 
+def active(sys: System) -> bool:
+    """Whether any tendon exerts a force: a spring or damper, a limit or an actuator (static structure)."""
+    return sys.ten_springs or sys.ten_limits or sys.act_on_tendons
+
+
 def lengths(sys: System, x: torch.Tensor) -> torch.Tensor:
-    """Tendon lengths ``(T, B)`` for dof coordinates ``x (D, B)`` (or their rates for the tendons' rates)."""
+    """Fixed tendon lengths ``(T, B)`` for dof coordinates ``x (D, B)`` (or their rates for the tendons' rates); 0 for
+    spatial tendons (``torchsim.tendon_paths``)."""
     return combine(x, sys.ten_wrap_tendon, sys.ten_wrap_dof, sys.ten_wrap_coef, sys.ten_limited.shape[0])
 
 
@@ -66,28 +76,35 @@ def forces(sys: System, length: torch.Tensor, velocity: torch.Tensor, act_force:
     return force
 
 
-def limit_forces(sys: System, length: torch.Tensor, velocity: torch.Tensor) -> torch.Tensor:
-    """The limits' tendon forces ``(T, B)``: each side of the range as MuJoCo's soft constraint (module doc)."""
+def limit_forces(sys: System, length: torch.Tensor, velocity: torch.Tensor,
+                 a0: torch.Tensor | None = None) -> torch.Tensor:
+    """The limits' tendon forces ``(T, B)``: each side of the range as MuJoCo's soft constraint (module doc), the
+    fixed tendons' explicit (``a0`` None); or with ``a0 (T, B)``, the acceleration the other forces give each
+    tendon's length (MuJoCo's ``a0``, ``tendon_paths.limit_wrench``), the spatial tendons' with that term."""
     lo, hi = lanes.param(sys.ten_range, 2).unbind(-2)
     margin = lanes.param(sys.ten_margin, 1)
-    limited = lanes.param(sys.ten_limited, 1)
+    limited = lanes.param(sys.ten_limited & (~sys.ten_is_spatial if a0 is None else sys.ten_is_spatial), 1)
     total = torch.zeros_like(length)
     for sign, dist in ((1.0, length - lo), (-1.0, hi - length)):  # lower side, upper side
         r = dist - margin
-        push = soft_force(r, sign * velocity, sys.ten_limit_gains, sys.ten_solimp, sys.ten_invweight)
+        push = soft_force(r, sign * velocity, sys.ten_limit_gains, sys.ten_solimp, sys.ten_invweight,
+                          None if a0 is None else sign * a0)
         total = total + sign * torch.where(limited & (r < 0), torch.clamp(push, min=0.0), 0.0)
     return total
 
 
 def soft_force(r: torch.Tensor, v: torch.Tensor, gains: torch.Tensor, solimp: torch.Tensor,
-               invweight: torch.Tensor) -> torch.Tensor:
+               invweight: torch.Tensor, a0: torch.Tensor | None = None) -> torch.Tensor:
     """MuJoCo's soft constraint as an explicit force ``(C, B)`` along ``C`` constraints (tendon limits, equality
     constraints) at violations ``r`` and their rates ``v (C, B)``: ``imp / A0 * (-B v - K imp r)`` (module doc), with
-    the System fields ``gains (C, 2)`` (``K``, ``B``), ``solimp (C, 5)`` and ``invweight (C,)`` (``A0``). A limit
-    takes its positive part; an equality constraint all of it."""
+    the System fields ``gains (C, 2)`` (``K``, ``B``), ``solimp (C, 5)`` and ``invweight (C,)`` (``A0``); with
+    ``a0 (C, B)``, the acceleration the other forces give the constraints, MuJoCo's ``imp / A0 * (aref - a0)``, its
+    force ``(aref - a0) / (A + R)`` where ``A = A0``. A limit takes its positive part; an equality constraint all of
+    it."""
     k, b = lanes.param(gains, 2).unbind(-2)
     imp = impedance(solimp, r)
-    return imp / lanes.param(invweight, 1) * (-b * v - k * imp * r)
+    aref = -b * v - k * imp * r
+    return imp / lanes.param(invweight, 1) * (aref if a0 is None else aref - a0)
 
 
 def impedance(solimp: torch.Tensor, r: torch.Tensor, square: bool = False) -> torch.Tensor:

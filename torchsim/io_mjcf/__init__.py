@@ -16,8 +16,9 @@ is harmless):
   (``kinematics.dof_angles``).
 - actuators: joint transmission, no activation dynamics, ``gaintype="fixed"``, ``biastype="none"|"affine"``
   (covers ``motor``, ``position`` and ``velocity``), with ``gear``, ``ctrlrange`` and ``forcerange``.
-- tendons: ``<fixed>`` over hinges and slides, with ``stiffness``, ``springlength``, ``damping``,
-  ``limited``/``range`` (soft, ``solreflimit``/``solimplimit``), and actuators with tendon transmission.
+- tendons: ``<fixed>`` over hinges and slides and ``<spatial>`` through sites and pulleys, with ``stiffness``,
+  ``springlength``, ``damping``, ``limited``/``range`` (soft, ``solreflimit``/``solimplimit``), and actuators with
+  tendon transmission.
 - equality constraints: ``<tendon>`` (fixed tendons) and ``<joint>`` (hinges, slides) with ``polycoef``, ``solref``,
   ``solimp``, as soft constraint forces on the dofs (``torchsim.equality``); ``<weld>`` and ``<connect>`` between
   bodies or sites (either may be the world or a mocap body) with ``solref``, ``solimp``, ``anchor``, ``relpose`` and
@@ -126,7 +127,7 @@ def load_mjcf(
     fused, fields = fuse_bodies(m)
     joints, jnt_dof = joint_fields(m, fused)
     fields |= joints | actuator_fields(m, jnt_dof) | geom_fields(m, fused, contact_soft=contact_model == "soft")
-    fields |= tendon_fields(m, jnt_dof) | equality_fields(m, jnt_dof) | weld_fields(m, fused)
+    fields |= tendon_fields(m, jnt_dof, fused) | equality_fields(m, jnt_dof) | weld_fields(m, fused)
     fields |= fluid_fields(m, fused)
     fields |= sensor_fields(m, fused, jnt_dof)
     gravity = m.opt.gravity * (0.0 if m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_GRAVITY) else 1.0)

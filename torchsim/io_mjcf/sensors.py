@@ -168,6 +168,11 @@ def _not_computed(m: mujoco.MjModel, i: int, kind: str | None) -> str:
         return "it reads a mocap body, whose pose is a System parameter (sys.mocap_pos, sys.mocap_quat)"
     if kind == "jointactuatorfrc" and (m.jnt_actfrclimited[obj] or m.jnt_actgravcomp[obj]):
         return "its joint's actuatorfrcrange or actuatorgravcomp is not modelled"
+    if kind == "jointactuatorfrc" and any(
+            m.actuator_trntype[a] == int(mujoco.mjtTrn.mjTRN_TENDON)
+            and m.wrap_type[m.tendon_adr[m.actuator_trnid[a, 0]]] != int(mujoco.mjtWrap.mjWRAP_JOINT)
+            for a in range(m.nu)):
+        return "an actuator acts on a spatial tendon, whose force torchsim applies to bodies, not to dofs"
     if kind in ("jointlimitpos", "jointlimitvel") and int(m.jnt_type[obj]) not in (int(mujoco.mjtJoint.mjJNT_HINGE),
                                                                                     int(mujoco.mjtJoint.mjJNT_SLIDE)):
         return "limits of free and ball joints are not modelled"

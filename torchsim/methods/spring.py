@@ -18,8 +18,9 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import hinge_anchors, integrator, joint_space, spatial, rigid, soft_contacts, welds
-from torchsim.actuators import dof_forces
+from torchsim import (hinge_anchors, integrator, joint_space, spatial, rigid, soft_contacts, tendon_paths,
+                      welds)
+from torchsim.actuators import body_wrench
 from torchsim.collision import contacts
 from torchsim.fluid import fluid_wrench
 from torchsim.kinematics import Bodies, JointFrames, dof_angles, dof_values, dof_window, joint_frames
@@ -167,9 +168,10 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, rot
 def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, axes: torch.Tensor, q: torch.Tensor,
                      ctrl: torch.Tensor):
     """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of the dofs' generalized forces: actuators, passive springs
-    and tendons, for dof ``axes (3, D, B)``, coordinates ``q (D, B)`` (``kinematics.dof_angles``) and ``ctrl (U, B)``.
-    (Limits are soft constraints solved with armature and damping, ``joint_space.limit_rows``.)"""
-    return rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, dof_values(sys, fr.qd), ctrl))
+    and tendons (spatial ones pulling on their sites, ``actuators.body_wrench``), for dof ``axes (3, D, B)``,
+    coordinates ``q (D, B)`` (``kinematics.dof_angles``) and ``ctrl (U, B)``. (Joint limits are soft constraints
+    solved with armature and damping, ``joint_space.limit_rows``; spatial tendons' limits follow in ``substep``.)"""
+    return body_wrench(sys, bodies, axes, q, dof_values(sys, fr.qd), ctrl)
 
 
 class StepTerms(NamedTuple):
@@ -216,6 +218,10 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     if sys.fluid:
         fluid_force, fluid_torque = fluid_wrench(sys, bodies, inv.rot)
         force, torque = force + fluid_force, torque + fluid_torque
+    if sys.ten_path_limits:
+        limit_force, limit_torque = tendon_paths.limit_wrench(sys, bodies, inv, force + spring_force,
+                                                              torque + spring_torque, axes, dof_values(sys, fr.qd))
+        force, torque = force + limit_force, torque + limit_torque
     if sys.welds:
         weld_force, weld_torque = welds.wrench(sys, bodies, inv, force + spring_force, torque + spring_torque)
         force, torque = force + weld_force, torque + weld_torque

@@ -20,8 +20,8 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import hinge_anchors, integrator, joint_space, lanes, spatial, rigid, welds
-from torchsim.actuators import dof_forces
+from torchsim import hinge_anchors, integrator, joint_space, lanes, spatial, rigid, tendon_paths, welds
+from torchsim.actuators import body_wrench
 from torchsim.collision import contacts
 from torchsim.fluid import fluid_wrench
 from torchsim.kinematics import Bodies, dof_angles, dof_values, dof_window, in_window, joint_frames
@@ -226,10 +226,13 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     fr = joint_frames(sys, bodies, all_slots=False, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
     q, qd = dof_angles(sys, dof_values(sys, fr.q), terms.window), dof_values(sys, fr.qd)
-    force, torque = rigid.dof_wrench(sys, bodies, axes, dof_forces(sys, q, qd, ctrl))
+    force, torque = body_wrench(sys, bodies, axes, q, qd, ctrl)
     if sys.fluid:
         fluid_force, fluid_torque = fluid_wrench(sys, bodies, inv.rot)
         force, torque = force + fluid_force, torque + fluid_torque
+    if sys.ten_path_limits:
+        limit_force, limit_torque = tendon_paths.limit_wrench(sys, bodies, inv, force, torque, axes, qd)
+        force, torque = force + limit_force, torque + limit_torque
     if sys.welds:
         weld_force, weld_torque = welds.wrench(sys, bodies, inv, force, torque)
         force, torque = force + weld_force, torque + weld_torque
