@@ -185,7 +185,8 @@ def check(source: str, path: Path, budget: float, max_hull_vertices: int | None 
             elif soft_status:  # the soft contacts' load refused or crashed where the impulse one loaded
                 row["soft_verdict"] = soft_status
             row["detail"] = "; ".join(filter(None, ["torchsim diverged" if diverged else "",
-                                                    f"soft: {soft_detail}" if soft_sys is None else "", row["detail"]]))
+                                                    f"soft: {soft_detail}" if soft_status not in ("", "LOAD") else "",
+                                                    row["detail"]]))
     if (source, path.stem) in TEMPLATES:
         row["detail"] = "; ".join(filter(None, ["template: the task builds its model from it in code", row["detail"]]))
     return row | dict(time=time.perf_counter() - t0)
