@@ -143,7 +143,7 @@ def speed(args):
     step = torchsim.Stepper(sys) if args.stepper == "compiled" else functools.partial(torchsim.step, sys)
 
     def one_step(x_pos, x_quat, xd_vel, xd_ang, q, qd, c):
-        s = step(torchsim.State(x_pos, x_quat, xd_vel, xd_ang, q, qd, diverged), c)
+        s = step(torchsim.State(x_pos, x_quat, xd_vel, xd_ang, q, qd, diverged, act), c)
         return s.x_pos, s.x_quat, s.xd_vel, s.xd_ang, s.q, s.qd
 
     def run(mode):
@@ -158,8 +158,8 @@ def speed(args):
         with torch.autograd.graph.saved_tensors_hooks(counter.pack, lambda t: t), \
                 torch.set_grad_enabled(mode != "forward"):
             state = torchsim.init(sys, q0, v)
-            nonlocal diverged
-            diverged = state.diverged
+            nonlocal diverged, act
+            diverged, act = state.diverged, state.act  # the Ant's act: empty
             fields = tuple(state[:6])
             for t in range(args.steps):
                 if mode == "checkpoint":
@@ -185,7 +185,7 @@ def speed(args):
                  f"{peak / env_steps / 1024:.1f} KiB per env per step" if device.type == "cuda" else ""),
               flush=True)
 
-    diverged = None
+    diverged = act = None
     print(f"Ant, batch {args.batch}, {args.steps} steps of {sys.substeps} substeps, float32, {device}, "
           f"{torch.get_num_threads()} threads, {step if args.stepper == 'compiled' else 'eager torchsim.step'}")
     warm_up = ("forward", "backward") if args.stepper == "compiled" else ("forward",)  # compiles, untimed

@@ -9,7 +9,7 @@ import warnings
 
 import torch
 
-from torchsim import lanes
+from torchsim import activation, lanes
 from torchsim.kinematics import Bodies, forward, joint_frames, read_q, with_world
 from torchsim.methods import METHODS
 from torchsim.state import State
@@ -28,22 +28,26 @@ def check(sys: System, name: str, x: torch.Tensor, width: int, batch: int | None
         raise ValueError(f"{name} is on {x.device} but the System is on {sys.device}; use sys.to(device=...)")
 
 
-def init(sys: System, q: torch.Tensor, qd: torch.Tensor) -> State:
-    """State for generalized coordinates ``q (B, nq)`` and velocities ``qd (B, nv)`` (MuJoCo's qpos/qvel layout)."""
+def init(sys: System, q: torch.Tensor, qd: torch.Tensor, act: torch.Tensor | None = None) -> State:
+    """State for generalized coordinates ``q (B, nq)`` and velocities ``qd (B, nv)`` (MuJoCo's qpos/qvel layout)
+    and activations ``act (B, na)`` (default: zero, MuJoCo's reset value)."""
     check(sys, "q", q, sys.nq)
     check(sys, "qd", qd, sys.nv, q.shape[0])
+    if act is None:
+        act = q.new_zeros(q.shape[0], sys.na)
+    check(sys, "act", act, sys.na, q.shape[0])
     bodies = with_world(*forward(sys, q, qd))
     q, qd = read_q(sys, bodies, joint_frames(sys, bodies), lanes.to_lanes(q))
     n = sys.num_bodies
     return to_public(State(*(x[..., :n, :] for x in bodies), q, qd,
-                           torch.zeros(q.shape[-1], dtype=torch.bool, device=q.device)))
+                           torch.zeros(q.shape[-1], dtype=torch.bool, device=q.device), lanes.to_lanes(act)))
 
 
 def to_lanes_state(state: State) -> State:
     """A public (batch-first) State in the lanes layout: poses ``(3|4, N, B)``, ``q (nq, B)``, ``qd (nv, B)``,
-    ``diverged (B,)`` (views)."""
+    ``diverged (B,)``, ``act (na, B)`` (views)."""
     return State(*(lanes.to_lanes(x, 1) for x in state[:4]), lanes.to_lanes(state.q), lanes.to_lanes(state.qd),
-                 state.diverged)
+                 state.diverged, lanes.to_lanes(state.act))
 
 
 def to_public(state: State) -> State:
@@ -53,7 +57,7 @@ def to_public(state: State) -> State:
     graph guards on strides and would otherwise compile a second time on the first step's output.
     """
     return State(*(lanes.from_lanes(x, 1).contiguous() for x in state[:4]), lanes.from_lanes(state.q).contiguous(),
-                 lanes.from_lanes(state.qd).contiguous(), state.diverged)
+                 lanes.from_lanes(state.qd).contiguous(), state.diverged, lanes.from_lanes(state.act).contiguous())
 
 
 def step(sys: System, state: State, ctrl: torch.Tensor) -> State:
@@ -81,6 +85,8 @@ def run_substeps(sys: System, state: State, ctrl: torch.Tensor, substep=None, fi
                  repeat=None) -> State:
     """``step`` without its input check, the outline every way of running a step follows: the method's step terms
     from the poses at the step's start, ``sys.substeps`` substeps, then ``finish_step`` (default :func:`finish`).
+    With activation dynamics the activations at the step's start drive their actuators through the substeps and
+    advance once at its end, as MuJoCo's Euler step integrates ``act`` (``torchsim.activation``).
 
     ``substep``: the method's substep function (default: the eager one), e.g. compiled; ``repeat(n, fn, bodies)``:
     how the substeps are repeated (default: a Python loop; ``torchsim.execution.compiled`` passes a ``while_loop``).
@@ -89,9 +95,14 @@ def run_substeps(sys: System, state: State, ctrl: torch.Tensor, substep=None, fi
     substep, finish_step, repeat = substep or method.substep, finish_step or finish, repeat or repeat_in_python
     h = sys.substep_timestep
     bodies, ctrl = to_lanes(state, ctrl)
+    if sys.na:  # static: MuJoCo's activations drive their actuators over the step and advance at its end
+        ctrl, act_next = activation.drive(sys, ctrl, lanes.to_lanes(state.act))
     terms = method.step_terms(sys, bodies, lanes.to_lanes(state.q), h)
     bodies = repeat(sys.substeps, lambda b: substep(sys, b, ctrl, terms, h), bodies)
-    return finish_step(sys, state, bodies)
+    new = finish_step(sys, state, bodies)
+    if sys.na:  # a diverged env keeps its activations with the rest of its last good state
+        new = new._replace(act=torch.where(new.diverged[:, None], state.act, lanes.from_lanes(act_next)))
+    return new
 
 
 def repeat_in_python(n: int, fn, bodies: Bodies) -> Bodies:
@@ -109,7 +120,7 @@ def to_lanes(state: State, ctrl: torch.Tensor) -> tuple[Bodies, torch.Tensor]:
 def records_grad(sys: System, state: State, ctrl: torch.Tensor) -> bool:
     """Whether autograd would record a step: grad mode on and some input requiring grad."""
     return torch.is_grad_enabled() and (
-        sys.requires_grad or ctrl.requires_grad or any(x.requires_grad for x in state[:4]))
+        sys.requires_grad or ctrl.requires_grad or any(x.requires_grad for x in (*state[:4], state.act)))
 
 
 def finish(sys: System, old: State, bodies: Bodies) -> State:
@@ -119,10 +130,11 @@ def finish(sys: System, old: State, bodies: Bodies) -> State:
 
 def finish_lanes(sys: System, old: State, bodies: Bodies) -> State:
     """The lanes State (:func:`to_lanes_state`) after a step from ``old``'s: the moving bodies of ``bodies``,
-    ``q, qd`` read back from them, divergence contained."""
+    ``q, qd`` read back from them, divergence contained; ``old``'s activations (:func:`run_substeps` advances
+    them)."""
     q, qd = read_q(sys, bodies, joint_frames(sys, bodies), old.q)
     n = sys.num_bodies
-    return contain_divergence(sys, old, State(*(x[..., :n, :] for x in bodies), q, qd, old.diverged))
+    return contain_divergence(sys, old, State(*(x[..., :n, :] for x in bodies), q, qd, old.diverged, old.act))
 
 
 def contain_divergence(sys: System, old: State, new: State) -> State:
@@ -136,4 +148,4 @@ def contain_divergence(sys: System, old: State, new: State) -> State:
     in_bounds = (new.x_pos.abs().amax((0, 1)) < sys.max_distance) & (
         torch.maximum(new.xd_vel.abs().amax((0, 1)), new.xd_ang.abs().amax((0, 1))) < sys.max_speed)
     diverged = old.diverged | ~(finite & in_bounds)
-    return State(*(torch.where(diverged, o, n) for o, n in zip(old[:6], new[:6])), diverged)
+    return State(*(torch.where(diverged, o, n) for o, n in zip(old[:6], new[:6])), diverged, new.act)

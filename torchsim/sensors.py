@@ -18,7 +18,7 @@ Which types are computed, and why the others are not: ``torchsim.io_mjcf.sensors
 
 import torch
 
-from torchsim import actuators, lanes, spatial, tendon_paths, tendons
+from torchsim import activation, actuators, lanes, spatial, tendon_paths, tendons
 from torchsim.io_mjcf.sensors import FRAME_KINDS, SUBTREE_KINDS
 from torchsim.io_mjcf.subset import UnsupportedMJCFError
 from torchsim.kinematics import _addresses, with_world
@@ -143,8 +143,10 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
             raise ValueError(f"the {needs_ctrl[0].kind} sensors read actuator forces, which depend on the "
                              "controls: pass ctrl (B, nu)")
         check(sys, "ctrl", ctrl, sys.nu, batch)
-        force = actuators.forces(sys, *actuators.coordinates(sys, q_dof, qd_dof, length, velocity),
-                                 lanes.to_lanes(ctrl))
+        driving = lanes.to_lanes(ctrl)
+        if sys.na:  # static: activated actuators are driven by their activations
+            driving = activation.drive(sys, driving, lanes.to_lanes(state.act))[0]
+        force = actuators.forces(sys, *actuators.coordinates(sys, q_dof, qd_dof, length, velocity), driving)
     frames = _Frames(sys, state) if any(g.kind in FRAME_KINDS + SUBTREE_KINDS for g in groups) else None
     data = q.new_full((sys.nsensordata, batch), float("nan"))
     for group in groups:

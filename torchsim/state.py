@@ -20,6 +20,8 @@ class State(NamedTuple):
         qd: (B, nv) generalized velocities in MuJoCo's ``qvel`` layout.
         diverged: (B,) bool; set (and kept) once an env's state went non-finite or out of bounds. A diverged
             env is frozen at its last good state until it is re-initialised.
+        act: (B, na) the actuators' activations (MuJoCo's ``act``, ``torchsim.activation``); ``(B, 0)`` for a model
+            without activation dynamics.
     """
 
     x_pos: torch.Tensor
@@ -29,3 +31,4 @@ class State(NamedTuple):
     q: torch.Tensor
     qd: torch.Tensor
     diverged: torch.Tensor
+    act: torch.Tensor

@@ -129,10 +129,32 @@ class System:
         free_origin: (nfree, 3) that origin from the body's COM, body frame [m].  root_passive: whether any ball
         joint or free body has damping, armature or stiffness (static: a model without skips their work,
         ``joint_space.root_rate_solve``).
-    Actuators (MuJoCo ``gaintype=fixed``, ``biastype=none|affine``, joint transmission):
-        act_dof: (U,) dof index.  act_gear, act_gain: (U,), batchable.  act_bias: (U, 3), batchable.
+    Actuators (MuJoCo ``gaintype`` fixed or muscle, ``biastype`` none, affine or muscle; joint, tendon or site
+    transmission; ``torchsim.actuators``):
+        act_dof: (U,) dof index, -1 for tendon and site transmission.  act_gear, act_gain: (U,), batchable.
+        act_bias: (U, 3), batchable.
         act_ctrl_range, act_force_range: (U, 2); act_ctrl_limited, act_force_limited: (U,) bool.
         act_tendon: (U,) tendon of an actuator with tendon transmission (its act_dof is -1), -1 for joint ones.
+        act_adr: (U,) the actuator's activation in ``State.act`` (MuJoCo ``actuator_actadr``), -1 without
+            activation dynamics.
+    Activation states (``A`` = ``na``, MuJoCo's ``act``, one per actuator with ``dyntype`` other than none):
+        activation_actuator: (A,) its actuator.  activation_kind: (A,) its dyntype, an index into
+        ``actuators.ACTIVATION_KINDS``.  activation_dynprm: (A, 3) MuJoCo's ``dynprm[:3]``: a filter's time
+        constant [s]; a muscle's activation and deactivation time constants [s] and smoothing width.
+        activation_range: (A, 2); activation_limited, activation_early: (A,) bool (``actrange``, ``actlimited``,
+        ``actearly``).  activation_kinds: the names of the kinds that occur (static: the step computes no others).
+    Muscle gain and bias (MuJoCo ``gaintype``/``biastype`` muscle, ``torchsim.muscles``; ``M`` actuators with a muscle
+    gain, ``M'`` with a muscle bias):
+        muscle_gain_actuator: (M,) the actuator.  muscle_gain_prm: (M, 9) its ``gainprm[:9]`` with the peak force
+        ``gainprm[2]`` resolved [N] (MuJoCo's ``scale / acc0`` where it is negative).  muscle_gain_range: (M, 2) its
+        ``actuator_lengthrange`` [m | rad].  muscle_bias_actuator, muscle_bias_prm, muscle_bias_range: the same for
+        the muscle biases, from ``biasprm`` (their ``act_bias`` is 0).  act_muscles: whether any (static structure).
+    Site transmission (``S`` actuators, MuJoCo ``site`` with an optional ``refsite``, ``torchsim.site_actuators``; a
+    missing refsite is the world's origin):
+        site_act_actuator: (S,) the actuator.  site_act_body: (2, S) the ext body each site, then each refsite,
+        moves with.  site_act_pos: (2, S, 3) each from its body's COM, body frame [m].  site_act_quat: (2, S, 4)
+        its orientation in the body frame.  site_act_gear: (S, 6) MuJoCo's 6D ``gear`` (force, torque).
+        site_act_has_ref: (S,) bool, whether it has a refsite.  act_on_sites: whether any (static structure).
     Tendons (``T``; a fixed tendon's length is ``L = sum_k coef_k q_k`` [m | rad] over ``K`` joint terms, a spatial
     tendon's the sum of its ``S`` straight segments between sites over their pulley divisors,
     ``torchsim.tendon_paths``):
@@ -305,6 +327,31 @@ class System:
     act_force_range: torch.Tensor
     act_force_limited: torch.Tensor
     act_tendon: torch.Tensor
+    act_adr: torch.Tensor
+    # activation states
+    activation_actuator: torch.Tensor
+    activation_kind: torch.Tensor
+    activation_dynprm: torch.Tensor
+    activation_range: torch.Tensor
+    activation_limited: torch.Tensor
+    activation_early: torch.Tensor
+    activation_kinds: tuple
+    # muscles
+    muscle_gain_actuator: torch.Tensor
+    muscle_gain_prm: torch.Tensor
+    muscle_gain_range: torch.Tensor
+    muscle_bias_actuator: torch.Tensor
+    muscle_bias_prm: torch.Tensor
+    muscle_bias_range: torch.Tensor
+    act_muscles: bool
+    # site transmission
+    site_act_actuator: torch.Tensor
+    site_act_body: torch.Tensor
+    site_act_pos: torch.Tensor
+    site_act_quat: torch.Tensor
+    site_act_gear: torch.Tensor
+    site_act_has_ref: torch.Tensor
+    act_on_sites: bool
     # tendons
     ten_wrap_tendon: torch.Tensor
     ten_wrap_dof: torch.Tensor
@@ -405,6 +452,11 @@ class System:
     def substep_timestep(self) -> float:
         """The length of one substep [s]: ``timestep / substeps``."""
         return self.timestep / self.substeps
+
+    @property
+    def na(self) -> int:
+        """Activation states per env (MuJoCo's ``na``; ``State.act``'s width)."""
+        return self.activation_actuator.shape[0]
 
     @property
     def num_bodies(self) -> int:

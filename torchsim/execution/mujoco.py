@@ -7,8 +7,8 @@ simulator the only difference (``python -m torchsim.evaluate physics=mujoco``, `
 
 Each call copies ``q`` and ``qd`` into MuJoCo's state, steps once with the control held, and rebuilds torchsim's
 body poses from MuJoCo's ``qpos``/``qvel`` (``torchsim.init``), so everything an env reads of a State is MuJoCo's.
-MuJoCo's solver warm start does not survive the round trip (each step starts its contact solve cold); activation
-states (``na > 0``) have no place in a State and are refused.
+MuJoCo's solver warm start does not survive the round trip (each step starts its contact solve cold); the actuators'
+activations (``na > 0``) travel as ``State.act``.
 """
 
 import mujoco
@@ -32,21 +32,20 @@ class MujocoStepper:
     strategy = "mujoco"
 
     def __init__(self, sys: System, model: mujoco.MjModel, threads: int | None = None):
-        if model.na:
-            raise ValueError(f"MujocoStepper: the model has {model.na} actuator activation states, which a torchsim "
-                             "State does not carry")
-        if (model.nq, model.nv, model.nu) != (sys.nq, sys.nv, sys.nu):
-            raise ValueError(f"MujocoStepper: the MuJoCo model (nq, nv, nu) = {(model.nq, model.nv, model.nu)} is not "
-                             f"the System's {(sys.nq, sys.nv, sys.nu)}")
+        if (model.nq, model.nv, model.nu, model.na) != (sys.nq, sys.nv, sys.nu, sys.na):
+            raise ValueError(f"MujocoStepper: the MuJoCo model (nq, nv, nu, na) = "
+                             f"{(model.nq, model.nv, model.nu, model.na)} is not the System's "
+                             f"{(sys.nq, sys.nv, sys.nu, sys.na)}")
         self.sys = sys
         self.model = model
         self._datas = [mujoco.MjData(model) for _ in range(threads or torch.get_num_threads())]
         self._spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
         self._template = np.empty(mujoco.mj_stateSize(model, self._spec))
         mujoco.mj_getState(model, self._datas[0], self._template, self._spec)
-        # FULLPHYSICS starts time, qpos, qvel (MuJoCo's mjtState order)
+        # FULLPHYSICS starts time, qpos, qvel, act (MuJoCo's mjtState order)
         self._qpos = slice(1, 1 + model.nq)
         self._qvel = slice(1 + model.nq, 1 + model.nq + model.nv)
+        self._act = slice(1 + model.nq + model.nv, 1 + model.nq + model.nv + model.na)
 
     def __call__(self, state: State, ctrl: torch.Tensor) -> State:
         batch = state.q.shape[0]
@@ -54,18 +53,20 @@ class MujocoStepper:
         start[:, 0] = 1.0  # time: MuJoCo resets an env whose accelerations blow up, which sets its time to 0
         start[:, self._qpos] = state.q.detach().cpu().double().numpy()
         start[:, self._qvel] = state.qd.detach().cpu().double().numpy()
+        start[:, self._act] = state.act.detach().cpu().double().numpy()
         control = ctrl.detach().cpu().double().numpy()[:, None, :]
         out = np.empty((batch, 1, start.shape[1]))
         mujoco.rollout.rollout(self.model, self._datas, start, control, nstep=1, state=out)
         as_tensor = lambda x: torch.as_tensor(x, dtype=self.sys.dtype, device=self.sys.device)  # noqa: E731
-        q, qd = as_tensor(out[:, 0, self._qpos]), as_tensor(out[:, 0, self._qvel])
+        q, qd, act = (as_tensor(out[:, 0, part]) for part in (self._qpos, self._qvel, self._act))
         stepped = torch.as_tensor(out[:, 0, 0] > 1.0, device=q.device)
-        ok = stepped & torch.isfinite(q).all(-1) & torch.isfinite(qd).all(-1)
+        ok = stepped & torch.isfinite(q).all(-1) & torch.isfinite(qd).all(-1) & torch.isfinite(act).all(-1)
         # an env MuJoCo reset (or left non-finite) keeps its last state and is flagged, as torchsim's own step
         # contains a divergence
         q = torch.where(ok[:, None], q, state.q)
         qd = torch.where(ok[:, None], qd, state.qd)
-        return pipeline.init(self.sys, q, qd)._replace(diverged=state.diverged | ~ok)
+        act = torch.where(ok[:, None], act, state.act)
+        return pipeline.init(self.sys, q, qd, act)._replace(diverged=state.diverged | ~ok)
 
     def for_system(self, sys: System) -> "MujocoStepper":
         raise NotImplementedError("MujocoStepper: per-env physics parameters (set_physics) are torchsim's; MuJoCo's "

@@ -14,8 +14,10 @@ is harmless):
 - hinge angles run on through full turns in ``q`` (MuJoCo's ``qpos``), and limits, springs, tendons, equalities
   and servos see them so (also ranges wider than a turn) while a hinge turns less than half a turn per step
   (``kinematics.dof_angles``).
-- actuators: joint transmission, no activation dynamics, ``gaintype="fixed"``, ``biastype="none"|"affine"``
-  (covers ``motor``, ``position`` and ``velocity``), with ``gear``, ``ctrlrange`` and ``forcerange``.
+- actuators: joint or site transmission (``site``, ``refsite``), ``gaintype="fixed"|"muscle"``,
+  ``biastype="none"|"affine"|"muscle"`` (covers ``motor``, ``position``, ``velocity`` and ``muscle``), activation
+  dynamics ``integrator``, ``filter``, ``filterexact`` and ``muscle`` (``State.act``), with ``gear``, ``ctrlrange``,
+  ``forcerange``, ``actrange`` and ``actearly``; body transmission (``adhesion``) is refused.
 - tendons: ``<fixed>`` over hinges and slides and ``<spatial>`` through sites and pulleys, with ``stiffness``,
   ``springlength``, ``damping``, ``limited``/``range`` (soft, ``solreflimit``/``solimplimit``), and actuators with
   tendon transmission.
@@ -126,7 +128,7 @@ def load_mjcf(
     _check_substeps(substeps)
     fused, fields = fuse_bodies(m)
     joints, jnt_dof = joint_fields(m, fused)
-    fields |= joints | actuator_fields(m, jnt_dof) | geom_fields(m, fused, contact_soft=contact_model == "soft")
+    fields |= joints | actuator_fields(m, jnt_dof, fused) | geom_fields(m, fused, contact_soft=contact_model == "soft")
     fields |= tendon_fields(m, jnt_dof, fused) | equality_fields(m, jnt_dof) | weld_fields(m, fused)
     fields |= fluid_fields(m, fused)
     fields |= sensor_fields(m, fused, jnt_dof)

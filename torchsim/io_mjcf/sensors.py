@@ -56,6 +56,7 @@ FRAME_KINDS = ("framepos", "framequat", "framexaxis", "frameyaxis", "framezaxis"
 SUBTREE_KINDS = ("subtreecom", "subtreelinvel", "subtreeangmom")
 LIMIT_KINDS = ("jointlimitpos", "jointlimitvel", "tendonlimitpos", "tendonlimitvel")
 ENERGY_KINDS = ("e_potential", "e_kinetic")
+ACTUATOR_KINDS = ("actuatorpos", "actuatorvel", "actuatorfrc", "jointactuatorfrc", "tendonactuatorfrc")
 #: The MjModel field prefix of each object type frame sensors read besides bodies.
 PREFIX = {int(Obj.mjOBJ_GEOM): "geom", int(Obj.mjOBJ_SITE): "site", int(Obj.mjOBJ_CAMERA): "cam"}
 #: Why the other sensor types are not computed.
@@ -166,6 +167,8 @@ def _not_computed(m: mujoco.MjModel, i: int, kind: str | None) -> str:
         bodies = _subtree_bodies(m, obj) if kind in SUBTREE_KINDS else []
     if any(m.body_mocapid[b] >= 0 for b in bodies):  # fused into the world, they would read the model's pose
         return "it reads a mocap body, whose pose is a System parameter (sys.mocap_pos, sys.mocap_quat)"
+    if kind in ACTUATOR_KINDS and np.any(m.actuator_trntype == int(mujoco.mjtTrn.mjTRN_SITE)):
+        return "actuators with site transmission are not read by sensors yet"
     if kind == "jointactuatorfrc" and (m.jnt_actfrclimited[obj] or m.jnt_actgravcomp[obj]):
         return "its joint's actuatorfrcrange or actuatorgravcomp is not modelled"
     if kind == "jointactuatorfrc" and any(

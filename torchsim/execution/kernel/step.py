@@ -39,6 +39,11 @@ def split_poses(poses: torch.Tensor, shapes: list) -> list[torch.Tensor]:
             for x, shape in zip(poses.split([shape[:-1].numel() for shape in shapes]), shapes)]
 
 
+#: The State's fields a kernel steps: all but ``act``, which the Systems it runs (without activation dynamics) hold
+#: empty; a System with activations is refused (the ``loop`` strategy runs it).
+STEPPED = State._fields.index("act")
+
+
 #: The code generator for each device type: its module has ``source(program)``, ``path(key)``,
 #: ``build(code, what, key)`` and ``Kernel(path, dtype, device, **options)``.
 EMITTERS = {"cpu": emit_cpp, "cuda": emit_cuda}
@@ -61,6 +66,9 @@ class StepKernel:
         emitter = emitter or EMITTERS.get(sys.device.type)
         if emitter is None:
             raise rows.Unsupported(f"no step kernel is generated for {sys.device.type} devices")
+        if sys.na:
+            raise rows.Unsupported(f"the step kernel does not carry actuator activations (State.act: the model has "
+                                   f"{sys.na} activation states)")
         self.substeps, self.device = sys.substeps, sys.device
         # traced on the CPU (the row interpreter reads index tensors as NumPy arrays; the Program it makes does not
         # depend on the device), at two envs (env 0's per-env parameters, the model's rest state): only shapes
@@ -73,7 +81,7 @@ class StepKernel:
         state = pipeline.init(probe_sys, q0, torch.zeros(2, sys.nv, dtype=sys.dtype))
         ctrl = torch.zeros(2, sys.nu, dtype=sys.dtype)
         params = [lanes.to_lanes(probe_sys.parameter(w)) for w in self.where]
-        inputs = [*pipeline.to_lanes_state(state), lanes.to_lanes(ctrl), *params]
+        inputs = [*pipeline.to_lanes_state(state)[:STEPPED], lanes.to_lanes(ctrl), *params]
         # the key holds the shared parameters' values and the per-env ones' shapes (their values are inputs)
         shapes_only = sys.with_parameters(self.where, [x.new_zeros(x.shape[1:]) for x in per_env])
         step_key = cache.content_key(shapes_only, inputs, {}, self.where)  # what the Program depends on
@@ -95,12 +103,12 @@ class StepKernel:
                     del _PROGRAMS[next(iter(_PROGRAMS))]
             path = emitter.build(emitter.source(program), what, key)
         self.kernel = emitter.Kernel(path, sys.dtype, self.device, **options)
-        self.fields = [(x.shape[1:], x.dtype) for x in (*state, ctrl)]
+        self.fields = [(x.shape[1:], x.dtype) for x in (*state[:STEPPED], ctrl)]
 
     def __call__(self, sys: System, state: State, ctrl: torch.Tensor) -> State:
-        names = [f"state.{field}" for field in State._fields] + ["ctrl"]
+        names = [f"state.{field}" for field in State._fields[:STEPPED]] + ["ctrl"]
         batch = ctrl.shape[0]
-        for name, x, (shape, dtype) in zip(names, (*state, ctrl), self.fields):
+        for name, x, (shape, dtype) in zip(names, (*state[:STEPPED], ctrl), self.fields):
             if x.shape != (batch, *shape) or x.dtype != dtype or x.device != self.device:  # the code reads raw memory
                 raise ValueError(f"{name} must be a {dtype} tensor of shape ({batch}, {', '.join(map(str, shape))}) "
                                  f"on {self.device} for this System's step kernel (ctrl has {batch} envs), got "
@@ -110,10 +118,10 @@ class StepKernel:
             if x.shape[0] != batch:
                 raise ValueError(f"the per-env parameter {'.'.join(map(str, w))} has {x.shape[0]} envs, the state "
                                  f"{batch}")
-        inputs = [x.contiguous() for x in (*state, ctrl, *params)]
-        outputs = [torch.empty_like(x) for x in inputs[:7]]
+        inputs = [x.contiguous() for x in (*state[:STEPPED], ctrl, *params)]
+        outputs = [torch.empty_like(x) for x in inputs[:STEPPED]]
         self.kernel(batch, inputs, outputs, self.substeps)
-        return State(*outputs)
+        return State(*outputs, state.act)
 
 
 def _graphs(sys: System, where: list[tuple], state: State, ctrl: torch.Tensor, params: list[torch.Tensor]):
@@ -143,16 +151,17 @@ def _graphs(sys: System, where: list[tuple], state: State, ctrl: torch.Tensor, p
         return (join_poses(after),)
 
     def finish(*old_poses_and_params):
-        old = State(*old_poses_and_params[:7])
-        new = pipeline.finish_lanes(system(old_poses_and_params[8:]), old,
-                                    Bodies(*split_poses(old_poses_and_params[7], shapes)))
-        return tuple(new)
+        old = State(*old_poses_and_params[:STEPPED], act=None)  # a System with activations has no kernel
+        new = pipeline.finish_lanes(system(old_poses_and_params[STEPPED + 1:]), old,
+                                    Bodies(*split_poses(old_poses_and_params[STEPPED], shapes)))
+        return tuple(new)[:STEPPED]
 
     lanes_ctrl = lanes.to_lanes(ctrl).contiguous()
     params = [x.contiguous() for x in params]
     graphs = (rows.row_graph(terms, [poses, q, *params]),
               rows.row_graph(substep, [poses, lanes_ctrl, *(leaves[i] for i in per_env), *params]),
-              rows.row_graph(finish, [*(x.contiguous() for x in pipeline.to_lanes_state(state)), poses, *params]))
+              rows.row_graph(finish, [*(x.contiguous() for x in pipeline.to_lanes_state(state)[:STEPPED]), poses,
+                                      *params]))
     # where each pose row starts a step: a row of the state (input t, its lanes row), or the world body's
     carried = []
     n = sys.num_bodies
