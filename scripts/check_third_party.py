@@ -136,9 +136,10 @@ def q_error(m: mujoco.MjModel, a: np.ndarray, b: np.ndarray) -> float:
     return float(np.sqrt(np.mean(diff**2)))
 
 
-def check(source: str, path: Path, budget: float, max_hull_vertices: int | None = None) -> dict:
+def check(source: str, path: Path, budget: float, max_hull_vertices: int | None = None, rollout: bool = True) -> dict:
     """One table row for the model at ``path``; ``max_hull_vertices``: ``torchsim.load_mjcf``'s, and MuJoCo rolls
-    out the model torchsim is built from (``torchsim.io_mjcf.mujoco_model``: its colliding hulls capped too)."""
+    out the model torchsim is built from (``torchsim.io_mjcf.mujoco_model``: its colliding hulls capped too);
+    ``rollout``: whether a loaded model is rolled out (or only loaded)."""
     t0 = time.perf_counter()
     row = dict(source=source, model=path.stem, status="", nq="-", contact="-", steps="-", ts=np.nan, mj=np.nan,
                soft=np.nan, verdict="", soft_verdict="", detail="")
@@ -157,6 +158,8 @@ def check(source: str, path: Path, budget: float, max_hull_vertices: int | None 
     row["status"], sys, row["detail"] = load(path, **options)
     if sys is not None and m.nq == 0:
         row["detail"] = "no joints: nothing to roll out"
+    elif sys is not None and not rollout:
+        row["detail"] = "; ".join(filter(None, ["loaded only, not rolled out", row["detail"]]))
     elif sys is not None:
         steps = int(round(HORIZON / m.opt.timestep))
         qd0 = np.random.default_rng(SEED).normal(0.0, VEL_STD, m.nv)
