@@ -52,6 +52,7 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     draws its episodes from the layouts of ``cfg.env.split`` if ``train``, else of ``cfg.env.eval_split``, and, for a
     recurrent policy (``cfg.algo.policy_net.lstm``), holds its states (``nav_policy.recurrent_transforms``)."""
     physics = cfg.get("physics", "torchsim")  # checkpoints from before the key ran on torchsim
+    contact_model = cfg.get("contact_model")
     if physics not in ("torchsim", "mujoco"):
         raise ValueError(f"physics must be 'torchsim' or 'mujoco', got {physics!r}")
     if cfg.env.name in torchsim.envs.NAV_ENVS:
@@ -64,13 +65,14 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
         if like is not None:
             stepper = like.base_env.stepper
         elif physics == "mujoco":
-            probe = torchsim.envs.make(cfg.env.name, device=device)  # its System and MuJoCo model, in its dtype
+            probe = torchsim.envs.make(cfg.env.name, device=device, contact_model=contact_model)  # System, MuJoCo model
             stepper = MujocoStepper(probe.base_sys, probe.mj_model)
         else:
             stepper = "auto" if cfg.compile else "eager"
         base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device,
                                   episode_length=cfg.env.episode_length,
-                                  stagger_episodes=train and cfg.stagger_episodes, stepper=stepper)
+                                  stagger_episodes=train and cfg.stagger_episodes, stepper=stepper,
+                                  contact_model=contact_model if isinstance(stepper, str) else None)
         if train and cfg.get("capture", False):
             if stepper != "auto":  # traced as a graph, the reference step compiles for minutes
                 raise ValueError("capture=true compiles the env's step around the engine's compiled step: it needs "

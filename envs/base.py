@@ -71,8 +71,8 @@ class TorchsimEnv(EnvBase):
             observation of a finished env is already its next episode's first one, and TorchRL writes NaN into
             its ``("next", "observation")``; use with ``GAE(..., auto_reset_env=True)``. This makes
             ``step_and_maybe_reset`` free of host syncs so it compiles as one graph.
-        method, substeps: physics solution method and substeps per model timestep (``torchsim.load_mjcf``;
-            default: the task's ``method`` and ``substeps``).
+        method, substeps, contact_model: physics solution method, substeps per model timestep and contact model
+            (``torchsim.load_mjcf``; default: the task's ``method``, ``substeps`` and ``contact_model``).
         stagger_episodes: a full reset starts each env's step counter at a uniform draw in
             ``[0, episode_length)``, so first episodes are truncated at different times. Tasks that never end early
             otherwise run every env in the same phase of its episode, and a training batch of a few steps then
@@ -102,6 +102,8 @@ class TorchsimEnv(EnvBase):
     urdf_armature: float = 0.0
     #: Physics substeps per model timestep, chosen per task by measurement (None: ``load_mjcf``'s 0.5 ms default).
     substeps: int | None = None
+    #: Contact model (``torchsim.load_mjcf``'s ``contact_model``), chosen per task by measurement.
+    contact_model: str = "impulse"
     #: Reset noise added to the initial ``q`` / ``qd``: (distribution, scale), distribution "uniform" (+-scale)
     #: or "normal" (standard deviation scale).
     noise_q = ("uniform", 0.1)
@@ -118,6 +120,7 @@ class TorchsimEnv(EnvBase):
 
     def __init__(self, num_envs: int = 1, *, device="cpu", dtype=torch.float32, episode_length: int = 1000,
                  native_autoreset: bool = False, method: str | None = None, substeps: int | None = None,
+                 contact_model: str | None = None,
                  stagger_episodes: bool = False, stepper: "str | torchsim.Stepper" = "eager",
                  from_pixels: bool = False, cameras=None, pixel_size=48, pixel_kind: str | None = None,
                  pixel_state: str = "full", frame_stack: int = 1, render_compile: bool = False,
@@ -130,12 +133,14 @@ class TorchsimEnv(EnvBase):
         if isinstance(stepper, str):
             system = torchsim.load_mjcf(xml, method=method or self.method,
                                         substeps=self.substeps if substeps is None else substeps,
+                                        contact_model=contact_model or self.contact_model,
                                         xpbd_iterations=self.xpbd_iterations, dtype=dtype, device=self.device)
             stepper = torchsim.Stepper(system, stepper)
-        elif (stepper.sys.dtype, stepper.sys.device) != (dtype, self.device) or method or substeps is not None:
+        elif ((stepper.sys.dtype, stepper.sys.device) != (dtype, self.device) or method or substeps is not None
+              or contact_model):
             raise ValueError(f"{type(self).__name__}: a given stepper's System must be in the env's dtype and on its "
                              f"device ({dtype}, {self.device}; got {stepper.sys.dtype}, {stepper.sys.device}) and "
-                             "comes with its own method and substeps")
+                             "comes with its own method, substeps and contact model")
         self.base_sys = stepper.sys
         self.stepper = stepper
         self.episode_length = int(episode_length)
