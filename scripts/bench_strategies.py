@@ -4,6 +4,7 @@ the table ``torchsim.execution.STRATEGIES`` (``docs/physics.md``, "How a step ru
     python scripts/bench_strategies.py                                  # ant, humanoid, halfcheetah; 1/64/1024/4096
     python scripts/bench_strategies.py --models ant --simdlen 256       # AVX2 code on an AVX-512 machine
     python scripts/bench_strategies.py --models ant --batches 1 64 --strategies kernel loop eager
+    python scripts/bench_strategies.py --models ant:impulse ant:soft --batches 4096 --strategies kernel
 
 Physics steps/s (batch x steps / s, float32, CPU, every thread) of one Stepper per model and strategy, built once and
 timed at every batch (its compile, on the first step of each new shape, is reported and not timed), from the env's
@@ -27,7 +28,8 @@ from _timing import emit_table, median_rate, mujoco_rollout_rate, mujoco_start_s
 
 def parse_args():
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--models", nargs="+", default=["ant", "humanoid", "halfcheetah"], help="env names")
+    p.add_argument("--models", nargs="+", default=["ant", "humanoid", "halfcheetah"],
+                   help="env names, each optionally with a contact model: ant:impulse, ant:soft (default: the task's)")
     p.add_argument("--batches", nargs="+", type=int, default=[1, 64, 1024, 4096])
     p.add_argument("--strategies", nargs="+", default=["kernel", "loop"])
     p.add_argument("--simdlen", type=int, default=None, help="inductor cpp.simdlen (256: AVX2 code); for the "
@@ -46,7 +48,8 @@ def main():
           f"{torch.get_num_threads()} threads, {os.cpu_count()} cores, float32, {isa}", flush=True)
     rows = []
     for name in args.models:
-        env = torchsim.envs.make(name, num_envs=1)
+        task, _, contact_model = name.partition(":")
+        env = torchsim.envs.make(task, num_envs=1, contact_model=contact_model or None)
         sys, m = env.base_sys, env.mj_model
         rng = np.random.default_rng(0)
         steppers = {s: torchsim.Stepper(sys, s, inductor_options=options) for s in args.strategies}

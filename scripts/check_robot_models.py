@@ -13,7 +13,7 @@ ways. ``--capped-load-only``: the capped models are loaded, not rolled out (an e
 64-vertex mesh pairs takes seconds to minutes: Fetch's rows took 8 minutes each).
 
     OMP_NUM_THREADS=1 python scripts/check_robot_models.py                  # all, summary and table on stdout
-    OMP_NUM_THREADS=1 python scripts/check_robot_models.py --write-docs     # and into docs/physics.md
+    OMP_NUM_THREADS=1 python scripts/check_robot_models.py --write-docs     # and into docs/models.md
     python scripts/check_robot_models.py --packages robosuite --match panda --budget 5
 
 The wheels are downloaded (``pip download --no-deps``) into ``--cache`` and unzipped there on first use.
@@ -32,7 +32,7 @@ from check_third_party import DOCS, ROOT, check, fetch, progress_line, provenanc
 from torchsim.io_mjcf.hull_caps import colliding_meshes, hull_vertex_count
 from torchsim.io_mjcf.meshes import MAX_HULL_VERTICES
 
-SECTION = "## Robot models (issue 53)"
+SECTION = "## Robot models of dm_control, gymnasium-robotics and robosuite"
 # distribution -> (default version, folder searched inside the wheel)
 PACKAGES = {
     "dm_control": ("1.0.50", "dm_control"),

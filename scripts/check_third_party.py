@@ -21,7 +21,7 @@ had any (``d.ncon > 0`` at some step); a diverged torchsim rollout is a MISS. A 
 ``--budget`` seconds is cut there and compared over the steps it ran (the steps column says so).
 
     OMP_NUM_THREADS=1 python scripts/check_third_party.py                 # all models, table on stdout
-    OMP_NUM_THREADS=1 python scripts/check_third_party.py --write-docs    # and into docs/physics.md
+    OMP_NUM_THREADS=1 python scripts/check_third_party.py --write-docs    # and into docs/models.md
     python scripts/check_third_party.py --models ant cartpole --cache /tmp/tp_cache
 """
 
@@ -45,8 +45,8 @@ import torchsim
 from _docs import replace_section
 
 ROOT = Path(__file__).resolve().parent.parent
-DOCS = ROOT / "docs" / "physics.md"
-SECTION = "## Third-party models (issue 27, item 5)"
+DOCS = ROOT / "docs" / "models.md"
+SECTION = "## Locomotion models of gymnasium, Brax and dm_control"
 # distribution -> (default version, model directory inside the wheel)
 PACKAGES = {
     "gymnasium": ("1.4.0", "gymnasium/envs/mujoco/assets"),
