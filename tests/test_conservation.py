@@ -1,5 +1,5 @@
 """Conservation laws on scripts/conservation.py's free-floating chain (zero gravity, no contacts, damping, limits
-or actuators; docs/physics.md, "Conservation against the time step"): both methods keep the linear momentum to
+or actuators; docs/conservation.md): both methods keep the linear momentum to
 rounding, and the angular momentum and kinetic energy to an error that shrinks with the step h."""
 
 import sys
