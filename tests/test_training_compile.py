@@ -20,15 +20,17 @@ import torchsim
 import torchsim.envs
 from test_train import QUIET, config
 from torchsim.algos.train import run
+from torchsim.execution.kernel import step as kernel_step
 
 
 def test_evaluation_reuses_the_training_graph(tmp_path, caplog, monkeypatch):
     """PPO with ``compile=true``: the training env builds the step (one C++ step kernel, for any batch size) once;
     the evaluation env, with another batch size and the training env's System, builds nothing more, though it is
     evaluated at the first and the last iteration; dynamo compiles nothing of the physics, and the loss it compiles
-    is announced by its class. The step cache is empty
-    (an earlier test or run may have stored this kernel, which would then load instead of build)."""
+    is announced by its class. The step cache is empty, on disk and in the process (an earlier test or run may have
+    stored this kernel, or traced its program in this worker, which would then load instead of build)."""
     monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path / "step_cache"))
+    monkeypatch.setattr(kernel_step, "_PROGRAMS", {})
     cfg = config("algo=ppo", "env=inverted_pendulum", "algo.num_envs=8", "algo.unroll=2", "algo.minibatches=2",
                  "budget.env_steps=32", "eval.max_steps=5", "eval.episodes=3", "eval.at_start=true", *QUIET,
                  "compile=true")
