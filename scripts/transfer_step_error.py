@@ -23,6 +23,7 @@ from omegaconf import OmegaConf
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 import torchsim
+from _timing import mujoco_start_states
 from torchsim.algos.common import load_checkpoint, load_policy, make_env
 
 PARTS = {"root velocity": slice(0, 3), "root angular velocity": slice(3, 6), "joint rates": slice(6, None)}
@@ -63,14 +64,12 @@ def mujoco_step(model: mujoco.MjModel, split: int, frame_skip: int, q, qd, ctrl)
     timestep = model.opt.timestep
     model.opt.timestep = timestep / split
     datas = [mujoco.MjData(model) for _ in range(torch.get_num_threads())]
-    kind = mujoco.mjtState.mjSTATE_FULLPHYSICS
-    start = np.zeros((q.shape[0], mujoco.mj_stateSize(model, kind)))
-    start[:, 1:1 + model.nq], start[:, 1 + model.nq:1 + model.nq + model.nv] = q.numpy(), qd.numpy()
+    start = mujoco_start_states(model, q.numpy(), qd.numpy())
     n = split * frame_skip
     out = np.empty((q.shape[0], n, start.shape[1]))
     mujoco.rollout.rollout(model, datas, start, np.repeat(ctrl.numpy()[:, None], n, 1), nstep=n, state=out)
     model.opt.timestep = timestep
-    end = torch.as_tensor(out[:, -1])
+    end = torch.as_tensor(out[:, -1])  # FULLPHYSICS: time, qpos, qvel, ...
     return end[:, 1:1 + model.nq], end[:, 1 + model.nq:1 + model.nq + model.nv]
 
 
