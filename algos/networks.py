@@ -79,7 +79,7 @@ class StateProbe(nn.Module):
     """An auxiliary loss for a pixel policy trained in simulation: a linear read-out of the policy CNN's features,
     regressed on the env's ``privileged_state`` (normalised). Why: the policy gradient alone is a weak, noisy signal
     for learning to see; this one asks the policy's encoder directly for the state the images show (the pole's angle
-    and, from the stacked frames, its rate), which a supervised probe learns in seconds (scripts/pixel_probe.py)."""
+    and, from the stacked frames, its rate), which a supervised probe learns in seconds (studies/pixel_probe.py)."""
 
     def __init__(self, encoder: PixelNet, state_dim: int, device):
         super().__init__()

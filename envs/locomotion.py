@@ -36,7 +36,7 @@ class Ant(_Runner):
     Terminates when the torso height leaves [0.2, 1.0] m. Reset: ``home`` pose + U(-0.1, 0.1) on q, 0.1 N(0, 1)
     on qd. Random actions often launch the torso above 1 m within tens of steps (MuJoCo on this model too).
 
-    Versus MuJoCo (``scripts/check_models.py``, full-range random actions, 0.25 s): torso within 9 cm (MuJoCo at
+    Versus MuJoCo (``studies/check_models.py``, full-range random actions, 0.25 s): torso within 9 cm (MuJoCo at
     10 ms vs 2.5 ms: 4 cm); the torso travels 0.15 m vs MuJoCo's 0.24 m (impulse contacts).
     """
 

@@ -35,7 +35,9 @@ import torchsim
 import torchsim.envs
 from torchsim.envs.base import ASSETS_DIR
 from torchsim.io_urdf import urdf_to_mjcf
-from _views import VIEW
+
+sys.path.insert(0, str(pathlib.Path(__file__).resolve().parent.parent / "benchmarks"))  # bench_render.py's cameras
+from _views import VIEW  # noqa: E402
 
 
 def parse_args():

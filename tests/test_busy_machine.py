@@ -1,6 +1,6 @@
 """On a machine another process is using, idle OpenMP threads must give their core back quickly: torchsim sets
 libgomp's spin count to 1000 (from its default 300,000) where it is imported before torch, as ``python -m
-torchsim.train`` does (``scripts/bench_contention.py`` measures why; ``docs/reliability.md``). libgomp reports the
+torchsim.train`` does (``benchmarks/bench_contention.py`` measures why; ``docs/reliability.md``). libgomp reports the
 value it runs with when ``OMP_DISPLAY_ENV=VERBOSE``."""
 
 import os

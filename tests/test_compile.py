@@ -126,7 +126,7 @@ def test_steps_recording_gradients_run_compiled(method="spring"):
     compiles once; a second rollout compiles nothing. Inductor's code for a forward and backward of this model takes
     ~5 min to build on a CI core, so the stepper here compiles through ``aot_eager`` (the same dynamo graphs and
     AOTAutograd split into forward and backward, run as ATen ops); inductor's gradients are checked against the
-    eager step's on the Ant by ``scripts/grad_horizon.py speed --stepper compiled`` (docs/gradients.md)."""
+    eager step's on the Ant by ``studies/grad_horizon.py speed --stepper compiled`` (docs/gradients.md)."""
     sys, state, ctrl = _setup(method)
     mass = sys.body_mass.clone().requires_grad_()
     sys = sys.replace(body_mass=mass)

@@ -1,4 +1,4 @@
-"""Conservation laws on scripts/conservation.py's free-floating chain (zero gravity, no contacts, damping, limits
+"""Conservation laws on studies/conservation.py's free-floating chain (zero gravity, no contacts, damping, limits
 or actuators; docs/conservation.md): both methods keep the linear momentum to
 rounding, and the angular momentum and kinetic energy to an error that shrinks with the step h."""
 
@@ -13,7 +13,7 @@ import torch
 import torchsim
 from models import F64, METHODS
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import conservation as cs  # noqa: E402
 
 SECONDS = 0.2

@@ -21,11 +21,13 @@ from tiny_runs import tiny_ppo
 REPO = pathlib.Path(__file__).resolve().parent.parent
 
 
-def script(name: str, monkeypatch):
-    """The module ``scripts/<name>.py`` (scripts/ on the path for its own imports)."""
-    monkeypatch.syspath_prepend(str(REPO / "scripts"))
+def script(where: str, monkeypatch):
+    """The module ``<where>.py``, e.g. ``scripts/view`` (its folder on the path for its own imports): the scripts,
+    benchmarks and studies that read checkpoints are the subjects here, run as their users run them."""
+    folder, name = where.split("/")
+    monkeypatch.syspath_prepend(str(REPO / folder))
     monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))  # record_video sets it on import
-    spec = importlib.util.spec_from_file_location(f"script_{name}", REPO / "scripts" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(f"script_{name}", REPO / folder / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module
@@ -56,22 +58,24 @@ def test_the_payload_runs_code_when_loaded_freely(hostile):
     assert marker.exists()
 
 
-# every path by which torchsim reads a checkpoint: the library, resume, the evaluation CLI and the scripts
+# every path by which torchsim reads a checkpoint: the library, resume, the evaluation CLI, the scripts and studies
 LOADERS = {
     "load_checkpoint": lambda path, mp: load_checkpoint(path),
     "resume": lambda path, mp: run(tiny_ppo(f"resume={path}"), path.parent / "resumed"),
     "torchsim.evaluate": lambda path, mp: evaluate_cli.main([f"checkpoint={path}"]),
-    "view.py --policy/--watch": lambda path, mp: script("view", mp).load(path),
-    "record_video.py --policy": lambda path, mp: script("record_video", mp).policy_rollout(str(path), 5),
-    "pusher_outcome.py": lambda path, mp: argv_main("pusher_outcome", [str(path)], mp),
-    "pointnav_report.py": lambda path, mp: argv_main("pointnav_report", [str(path), str(path.parent / "r.png")], mp),
-    "bench_pointnav.py --checkpoint": lambda path, mp: argv_main("bench_pointnav", ["--checkpoint", str(path)], mp),
+    "view.py --policy/--watch": lambda path, mp: script("scripts/view", mp).load(path),
+    "record_video.py --policy": lambda path, mp: script("scripts/record_video", mp).policy_rollout(str(path), 5),
+    "pusher_outcome.py": lambda path, mp: argv_main("studies/pusher_outcome", [str(path)], mp),
+    "pointnav_report.py": lambda path, mp: argv_main("studies/pointnav_report", [str(path), str(path.parent / "r.png")],
+                                                     mp),
+    "bench_pointnav.py --checkpoint": lambda path, mp: argv_main("benchmarks/bench_pointnav",
+                                                                 ["--checkpoint", str(path)], mp),
 }
 
 
-def argv_main(name: str, argv: list, monkeypatch):
-    module = script(name, monkeypatch)
-    monkeypatch.setattr(sys, "argv", [f"{name}.py", *argv])
+def argv_main(where: str, argv: list, monkeypatch):
+    module = script(where, monkeypatch)
+    monkeypatch.setattr(sys, "argv", [f"{where}.py", *argv])
     module.main()
 
 
@@ -84,10 +88,10 @@ def test_hostile_checkpoint_is_refused(loader, hostile, monkeypatch):
 
 
 def test_no_torch_load_without_weights_only():
-    """Every ``torch.load`` call in the package and the scripts passes ``weights_only=True`` (one does:
+    """Every ``torch.load`` call in the package, scripts, benchmarks and studies passes ``weights_only=True`` (one does:
     ``load_checkpoint``), so a script added later cannot bring the full unpickler back unnoticed."""
     calls = []
-    for folder in ("torchsim", "algos", "envs", "scripts"):
+    for folder in ("torchsim", "algos", "envs", "scripts", "benchmarks", "studies"):
         for path in sorted((REPO / folder).rglob("*.py")):
             for node in ast.walk(ast.parse(path.read_text(), str(path))):
                 if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "load"
@@ -108,7 +112,7 @@ def test_training_checkpoint_loads_everywhere(tmp_path, monkeypatch):
     assert ckpt["counters"]["iteration"] == 2
     result = evaluate_cli.main([f"checkpoint={path}", "episodes=2", "max_steps=3"])
     assert result["env"] == "inverted_pendulum" and result["env_steps_trained"] == 32
-    env, actor, name = script("view", monkeypatch).load(path)
+    env, actor, name = script("scripts/view", monkeypatch).load(path)
     assert name == "inverted_pendulum" and actor is not None
     resumed = run(tiny_ppo(f"resume={path}", "budget.env_steps=48"), tmp_path / "resumed")
     assert resumed.env_steps == 48 and resumed.iteration == 3
@@ -175,6 +179,6 @@ def test_loopback_hosts():
 
 
 def test_view_script_serves_this_machine_by_default(monkeypatch):
-    view = script("view", monkeypatch)
+    view = script("scripts/view", monkeypatch)
     assert view.parser().parse_args([]).host == "127.0.0.1"
     assert view.parser().parse_args(["--host", "0.0.0.0"]).host == "0.0.0.0"

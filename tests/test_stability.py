@@ -1,4 +1,4 @@
-"""The stability boundary of docs/stability.md (map: scripts/stability_map.py): inside the documented stable region
+"""The stability boundary of docs/stability.md (map: studies/stability_map.py): inside the documented stable region
 every env runs long random-action rollouts without diverging; outside it the divergence flag fires and the state
 returned is the frozen last good one, not garbage."""
 
@@ -14,7 +14,7 @@ import torchsim
 from models import METHODS
 from torchsim.envs import ENVS
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "scripts"))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
 import soak  # noqa: E402
 import stability_map as sm  # noqa: E402
 
@@ -41,11 +41,11 @@ def test_env_defaults_run_5000_substeps(name):
     assert result["median_gap_m"] < sm.SEPARATION_BOUND_M
 
 
-# The soak's short version (scripts/soak.py; docs/stability.md, "Soak"): the Ant, the env that diverged under constant
+# The soak's short version (studies/soak.py; docs/stability.md, "Soak"): the Ant, the env that diverged under constant
 # full-range controls, with the envs' compiled step. Eager would cost ~2 s per 256-env Ant step (100 substeps); the
 # kernel builds in ~20 s on first use (cached on disk) and then runs the three modes in seconds.
 SOAK_NUM_ENVS, SOAK_STEPS = 256, 100
-# The Ants then run on without resets under one constant random control each, as scripts/bench_physics.py runs them,
+# The Ants then run on without resets under one constant random control each, as benchmarks/bench_physics.py runs them,
 # where they used to diverge: 300 physics steps (3 s), within which the old limits had let the median env's hinges
 # 53 degrees past their ranges (docs/stability.md, "Joint limits and held gains"); held limits stay within ~5 degrees.
 TUMBLE_PHYSICS_STEPS, TUMBLE_LIMIT_OVERSHOOT_DEG = 300, 15.0

@@ -12,7 +12,7 @@ import os
 # Idle OpenMP threads (torch's pool, which the CPU step kernel shares) spin ~300k times before they sleep, libgomp's
 # default: on a machine where another process is busy the spinning threads take the cores the working one needs,
 # and the main job fell to 0.06-0.30 of its idle rate; after 1000 spins it keeps 0.4-0.5, idle rate unchanged
-# (scripts/bench_contention.py, docs/reliability.md). libgomp reads this once, when torch loads it: it applies where
+# (benchmarks/bench_contention.py, docs/reliability.md). libgomp reads this once, when torch loads it: it applies where
 # torchsim is imported before torch (python -m torchsim.train), and an explicit setting wins.
 os.environ.setdefault("GOMP_SPINCOUNT", "1000")
 

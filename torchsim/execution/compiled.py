@@ -76,7 +76,7 @@ class Compiled:
         from a Python loop. A step kernel has no backward, and the ``loop`` strategy's ``while_loop`` gave wrong
         gradients in torch 2.13; compiled functions do (AOTAutograd compiles a forward that saves what the backward
         needs, and the backward): equal to the reference step's to rounding (tests/test_compile.py;
-        ``scripts/grad_horizon.py compiled``), compiled once per model on the first recording step."""
+        ``studies/grad_horizon.py compiled``), compiled once per model on the first recording step."""
         # Every float input made to require grad (constants as new leaves, whose gradients nobody reads): dynamo
         # guards on which inputs require grad, and a rollout mixes patterns (its detached start, then states that
         # depend on the controls), each of which would compile its own forward and backward (measured on APG's

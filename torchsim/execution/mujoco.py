@@ -3,7 +3,7 @@
 
 An env built with ``stepper=MujocoStepper(...)`` runs its own observation, reward, termination and reset code on
 MuJoCo's physics, which is what a policy-transfer measure needs: the same task code on both simulators, the
-simulator the only difference (``python -m torchsim.evaluate physics=mujoco``, ``scripts/policy_transfer.py``).
+simulator the only difference (``python -m torchsim.evaluate physics=mujoco``, ``studies/policy_transfer.py``).
 
 Each call copies ``q`` and ``qd`` into MuJoCo's state, steps once with the control held, and rebuilds torchsim's
 body poses from MuJoCo's ``qpos``/``qvel`` (``torchsim.init``), so everything an env reads of a State is MuJoCo's.

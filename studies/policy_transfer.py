@@ -1,0 +1,89 @@
+"""Policy transfer as a fidelity measure (issue 27, item 6): a policy trained on one simulator's physics, run on the
+other's, with the same task code.
+
+For each checkpoint (a training run's ``checkpoints/last.pt``) the deterministic policy runs ``--episodes`` episodes
+on the physics it trained on and on the other one (torchsim or MuJoCo C, through ``torchsim.execution.mujoco``), from
+the same start states (``seed``), with the same observation, reward, termination and observation normaliser. The
+ratio of the mean returns (other / trained-on) says how much of the policy's skill survives the change of simulator:
+1.0 where the two simulators agree on everything the policy exploits.
+
+    python studies/policy_transfer.py outputs/ppo_ant/<run>/checkpoints/last.pt ...       # table on stdout
+    python studies/policy_transfer.py --write-docs <checkpoints>                          # and into docs/physics.md
+    python -m torchsim.train env=hopper physics=mujoco        # a policy trained in MuJoCo, for the reverse direction
+"""
+
+import argparse
+import sys
+import time
+from datetime import datetime, timezone
+from pathlib import Path
+
+import torch
+
+from _docs import replace_section
+from torchsim.algos.evaluate import main as evaluate
+
+ROOT = Path(__file__).resolve().parent.parent
+DOCS = ROOT / "docs" / "physics.md"
+SECTION = "## Policy transfer between torchsim and MuJoCo"
+OTHER = {"torchsim": "mujoco", "mujoco": "torchsim"}
+
+
+def transfer(checkpoint: Path, episodes: int, seed: int) -> dict:
+    """Mean returns of ``checkpoint``'s policy on the physics it trained on and on the other one."""
+    row = {}
+    for which in ("trained", "other"):
+        physics = [] if which == "trained" else [f"physics={OTHER[row['trained_on']]}"]
+        start = time.perf_counter()
+        result = evaluate([f"checkpoint={checkpoint}", f"episodes={episodes}", f"seed={seed}", *physics])
+        row.setdefault("env", result["env"])
+        row.setdefault("algo", result["algo"])
+        row.setdefault("env_steps", result["env_steps_trained"])
+        row.setdefault("trained_on", result["trained_on"])
+        row[which] = result
+        print(f"  {result['env']} on {result['physics']}: return {result['return_mean']:.0f} +- "
+              f"{result['return_std']:.0f}, length {result['episode_length_mean']:.0f} "
+              f"({time.perf_counter() - start:.0f} s)", flush=True)
+    row["ratio"] = row["other"]["return_mean"] / row["trained"]["return_mean"]
+    return row
+
+
+def table(rows: list[dict], episodes: int) -> str:
+    lines = ["| env (algo, env steps trained) | trained on | return there (length) | run on | return there (length) "
+             "| ratio |", "|---|---|---:|---|---:|---:|"]
+    for r in rows:
+        t, o = r["trained"], r["other"]
+        lines.append(f"| {r['env']} ({r['algo']}, {r['env_steps'] / 1e6:.1f}M) | {t['physics']} | "
+                     f"{t['return_mean']:.0f} +- {t['return_std']:.0f} ({t['episode_length_mean']:.0f}) | "
+                     f"{o['physics']} | {o['return_mean']:.0f} +- {o['return_std']:.0f} "
+                     f"({o['episode_length_mean']:.0f}) | {r['ratio']:.2f} |")
+    return "\n".join(lines) + f"\n\nMean +- std over {episodes} episodes from the same start states on both."
+
+
+def write_docs(text: str, command: str) -> None:
+    """Replace the section's table, keeping the hand-written ``###`` notes below it."""
+    stamp = datetime.now(timezone.utc).strftime("%Y-%m-%d")
+    replace_section(DOCS, SECTION, f"Measured {stamp}: `{command}`\n\n{text}", keep_subsections=True)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkpoints", nargs="+", type=Path)
+    parser.add_argument("--episodes", type=int, default=64)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--write-docs", action="store_true", help=f"write the table into {DOCS.relative_to(ROOT)}")
+    args = parser.parse_args()
+    torch.set_num_threads(min(2, torch.get_num_threads()))
+    rows = []
+    for checkpoint in args.checkpoints:
+        print(f"{checkpoint}:", flush=True)
+        rows.append(transfer(checkpoint, args.episodes, args.seed))
+    text = table(rows, args.episodes)
+    print(text)
+    if args.write_docs:
+        command = "python studies/policy_transfer.py " + " ".join(sys.argv[1:]).replace("--write-docs ", "")
+        write_docs(text, command)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,121 @@
+"""Where a trained policy's transfer gap comes from: one env step from the states the policy visits, on torchsim's
+physics and on MuJoCo's, against MuJoCo's converged answer.
+
+    python studies/transfer_step_error.py <run>/checkpoints/last.pt [--steps 100] [--contact-models impulse soft]
+        [--no-floor | --frictionless]
+
+The policy runs ``--steps`` steps in its own env (64 envs, deterministic actions); every state and action it
+visits (torso height inside the healthy range) is then stepped once more, in float64, by torchsim with each
+``--contact-models`` and by MuJoCo C at the model's time step, at a quarter of it and at a twentieth (the
+reference). Printed per part of ``qd`` (the root's linear and angular velocity, the joint rates): the median error
+of ``qd`` after the env step relative to the median change of ``qd`` over it, and the median error of the root's
+height [mm]. ``--no-floor`` removes every contact with the floor on both sides, ``--frictionless`` gives every
+contact condim 1 on both: what is left of the gap without contacts or without friction.
+"""
+
+import argparse
+import sys
+from pathlib import Path
+
+import mujoco
+import mujoco.rollout
+import numpy as np
+import torch
+from omegaconf import OmegaConf
+from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
+
+import torchsim
+from torchsim.algos.common import load_checkpoint, load_policy, make_env
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))  # the benchmarks' MuJoCo helpers
+from _timing import mujoco_start_states  # noqa: E402
+
+PARTS = {"root velocity": slice(0, 3), "root angular velocity": slice(3, 6), "joint rates": slice(6, None)}
+
+
+def visited(checkpoint: str, steps: int):
+    """The states ``q, qd`` and clipped actions the policy visits (float64), its env and its task's frame skip."""
+    ckpt = load_checkpoint(checkpoint, "cpu")
+    env = make_env(OmegaConf.create(ckpt["cfg"]), 64, "cpu")
+    actor = load_policy(ckpt, env, "cpu")
+    torch.manual_seed(7)
+    td, rows = env.reset(), []
+    alive = torch.ones(env.batch_size, dtype=torch.bool)
+    with set_exploration_type(ExplorationType.DETERMINISTIC), torch.no_grad():
+        for _ in range(steps):
+            td = actor(td)
+            state = env.base_env.state
+            rows.append([x[alive] for x in (state.q.double(), state.qd.double(), td["action"].double().clamp(-1, 1))])
+            td = env.step(td)
+            alive &= ~td["next", "done"].squeeze(-1)  # a finished episode's env is not reset here: its states stop
+            td = step_mdp(td)
+    q, qd, ctrl = (torch.cat(x) for x in zip(*rows))
+    return q, qd, ctrl, env.base_env
+
+
+def edited_model(env, no_floor: bool, frictionless: bool) -> mujoco.MjSpec:
+    spec = mujoco.MjSpec.from_string(env._model_xml())
+    for geom in spec.geoms:
+        if no_floor and geom.type == mujoco.mjtGeom.mjGEOM_PLANE:
+            geom.contype, geom.conaffinity = 0, 0
+        if frictionless:
+            geom.condim = 1
+    return spec
+
+
+def mujoco_step(model: mujoco.MjModel, split: int, frame_skip: int, q, qd, ctrl):
+    """``q, qd`` after one env step in MuJoCo with the model's step split in ``split``."""
+    timestep = model.opt.timestep
+    model.opt.timestep = timestep / split
+    datas = [mujoco.MjData(model) for _ in range(torch.get_num_threads())]
+    start = mujoco_start_states(model, q.numpy(), qd.numpy())
+    n = split * frame_skip
+    out = np.empty((q.shape[0], n, start.shape[1]))
+    mujoco.rollout.rollout(model, datas, start, np.repeat(ctrl.numpy()[:, None], n, 1), nstep=n, state=out)
+    model.opt.timestep = timestep
+    end = torch.as_tensor(out[:, -1])  # FULLPHYSICS: time, qpos, qvel, ...
+    return end[:, 1:1 + model.nq], end[:, 1 + model.nq:1 + model.nq + model.nv]
+
+
+def torchsim_step(xml: str, contact_model: str, frame_skip: int, q, qd, ctrl):
+    sys = torchsim.load_mjcf(xml, dtype=torch.float64, contact_model=contact_model)
+    state = torchsim.init(sys, q, qd)
+    for _ in range(frame_skip):
+        state = torchsim.step(sys, state, ctrl)
+    return state.q, state.qd
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("checkpoint")
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--contact-models", nargs="+", default=["impulse", "soft"])
+    edit = parser.add_mutually_exclusive_group()
+    edit.add_argument("--no-floor", action="store_true")
+    edit.add_argument("--frictionless", action="store_true")
+    args = parser.parse_args()
+    q, qd, ctrl, env = visited(args.checkpoint, args.steps)
+    root_z = 2 if env.mj_model.jnt_type[0] == mujoco.mjtJoint.mjJNT_FREE else 1  # a free root's z, or a planar root's
+    spec = edited_model(env, args.no_floor, args.frictionless)
+    model = spec.compile()
+    xml = spec.to_xml()
+    ref_q, ref_qd = mujoco_step(model, 20, env.frame_skip, q, qd, ctrl)
+    change = (ref_qd - qd)
+
+    def report(name, result):
+        err = result[1] - ref_qd
+        cells = [f"{(err[:, s].norm(dim=-1).median() / change[:, s].norm(dim=-1).median()).item():.3f}"
+                 for s in PARTS.values()]
+        z_mm = 1000 * (result[0][:, root_z] - ref_q[:, root_z]).abs().median().item()
+        print(f"| {name} | " + " | ".join(cells) + f" | {z_mm:.2f} |")
+
+    print(f"{q.shape[0]} states; one env step against MuJoCo at a twentieth of the model's time step\n")
+    print("| physics | " + " | ".join(PARTS) + " | root height [mm] |\n|---|" + "---:|" * (len(PARTS) + 1))
+    report("MuJoCo at the model's step", mujoco_step(model, 1, env.frame_skip, q, qd, ctrl))
+    report("MuJoCo at a quarter of it", mujoco_step(model, 4, env.frame_skip, q, qd, ctrl))
+    for contact_model in args.contact_models:
+        report(f"torchsim, {contact_model} contacts", torchsim_step(xml, contact_model, env.frame_skip, q, qd, ctrl))
+
+
+if __name__ == "__main__":
+    main()
