@@ -288,7 +288,7 @@ SHAPES_XML = """<mujoco><asset><mesh name="tet" vertex="0 0 0 1 0 0 0 1 0 0 0 1"
   <geom name="hidden" type="sphere" pos="0 0 2" size="0.2" group="3"/>
   <geom name="clear" type="sphere" pos="0 0 2" size="0.2" rgba="1 1 1 0"/>
   <body name="b" pos="50 0 1"><freejoint/><geom name="mover" type="sphere" size="0.25"/>
-    <geom name="tetra" type="mesh" mesh="tet" contype="0" conaffinity="0"/></body>
+    <geom name="tetra" type="mesh" mesh="tet" pos="0 0 -1.5" contype="0" conaffinity="0"/></body>
 </worldbody></mujoco>"""
 #: Exact depth at the centre of the image of a camera 5 m above each geom's centre (z = 1), looking down.
 TOP_DEPTH = {"floor": 6.0, "ball": 4.5, "crate": 4.3, "pill": 4.2, "can": 4.7, "egg": 4.4}
@@ -301,10 +301,15 @@ def shapes_scene(**kw):
 
 
 def test_unsupported_geom_is_named():
-    with pytest.raises(UnsupportedGeomError, match="'tetra'.*MESH"):
-        shapes_scene()
-    scene, _ = shapes_scene(skip_unsupported=True)
-    assert scene.skipped == ("tetra",)
+    """A height field (not drawn; ``torchsim.load_mjcf`` refuses them too, so the scene is built from the model with
+    one added to the world against the system without it: same bodies)."""
+    xml = SHAPES_XML.replace("<asset>", '<asset><hfield name="h" nrow="3" ncol="3" size="1 1 0.1 0.1"/>').replace(
+        "<worldbody>", '<worldbody><geom name="ground" type="hfield" hfield="h" pos="0 0 -3"/>')
+    system = torchsim.load_mjcf(SHAPES_XML)
+    with pytest.raises(UnsupportedGeomError, match="'ground'.*HFIELD"):
+        Scene.build(mujoco.MjModel.from_xml_string(xml), system)
+    scene = Scene.build(mujoco.MjModel.from_xml_string(xml), system, skip_unsupported=True)
+    assert scene.skipped == ("ground",) and "mesh" in scene.geom_type  # the tetrahedron is drawn
 
 
 def test_closed_form_depths():
@@ -312,7 +317,7 @@ def test_closed_form_depths():
     m = mujoco.MjModel.from_xml_string(SHAPES_XML)
     ids = {n: mujoco.mj_name2id(m, mujoco.mjtObj.mjOBJ_GEOM, n) for n in ("hidden", "clear", "mover")}
     assert ids["hidden"] not in scene.geom_id and ids["clear"] not in scene.geom_id  # group 3, transparent: not drawn
-    assert ids["mover"] in scene.geom_id and scene.num_geoms == 7
+    assert ids["mover"] in scene.geom_id and scene.num_geoms == 8  # the tetrahedron below the mover too
     xs = {"floor": -5.0, "ball": 0.0, "crate": 10.0, "pill": 20.0, "can": 30.0, "egg": 40.0}
     cams = [Camera.look_at((x, 0.0, 6.0), (x, 0.0, 0.0), up=(0.0, 1.0, 0.0), fovy=30.0) for x in xs.values()]
     images = render(scene, state, cams, 31, 41, rgb=True)

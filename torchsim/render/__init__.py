@@ -6,8 +6,9 @@
     images = render(scene, state, cam, 64, 64, rgb=True)   # images.depth (B, 64, 64), images.rgb (B, 64, 64, 3)
 
 Modules: ``scene`` (the static geom table and cameras), ``camera`` (camera poses and pixel rays), ``raycast``
-(closed-form ray-shape hits), ``nearest`` (nearest hits: dense or culled by screen tiles), ``renderer`` (the entry
-point ``render``), ``frames`` (rotation helpers). ``docs/rendering.md`` has the conventions and the measured
+(closed-form ray-shape hits), ``mesh`` (triangle meshes: a BVH per mesh asset and its batched traversal),
+``nearest`` (nearest hits: dense or culled by screen tiles), ``renderer`` (the entry point ``render``), ``frames``
+(rotation helpers). ``docs/rendering.md`` has the conventions and the measured
 agreement with MuJoCo's renderer.
 """
 

@@ -11,11 +11,14 @@ the surviving (env, camera, geom, tile) rows are ray cast, and their hits are re
 scatter-min. Most geoms of a robot cover a few tiles of a 64x64 image, so this does a fraction of the dense work,
 and gives the same images (the culling is conservative). The geom seen by a pixel is found with the same
 scatter-min on a key packing the hit's float32 depth bits above the geom's index.
+
+Mesh geoms take the same paths: their rays (the same origin and per-pixel directions in the geom's frame) go
+through the mesh's BVH (:func:`torchsim.render.mesh.cast`) instead of a closed form, always eagerly.
 """
 
 import torch
 
-from torchsim.render import raycast
+from torchsim.render import mesh, raycast
 
 NONE = 0xFFFF  # the "no geom" index in packed keys (scenes have fewer geoms)
 EMPTY = (0x7F800000 << 16) | NONE  # the key of no hit: float32 +inf's bits, no geom
@@ -78,12 +81,26 @@ def dense(scene, origin, axes, xs, ys, want_which: bool):
     for kind, index in scene.groups:
         o = tuple(origin[:, :, index, k, None, None] for k in range(3))
         d = _directions(axes[:, :, index, None, None], x, y)
-        size = tuple(scene.geom_size[index, k][:, None, None] for k in range(3))
-        t, arg = raycast.HIT[kind](o, d, size, scene.znear, scene.zfar).min(2)
+        if kind == "mesh":
+            t = _mesh_dense(scene, index, o, d)
+        else:
+            size = tuple(scene.geom_size[index, k][:, None, None] for k in range(3))
+            t = raycast.HIT[kind](o, d, size, scene.znear, scene.zfar)
+        t, arg = t.min(2)
         if want_which:
             which = torch.where(t < depth, index[arg], which)
         depth = torch.minimum(depth, t)
     return depth, which
+
+
+def _mesh_dense(scene, index, o, d):
+    """Hits ``(b, C, g, H, W)`` of every pixel's ray with the mesh geoms ``index`` (ray components as in
+    :func:`dense`)."""
+    d = torch.stack(torch.broadcast_tensors(*d), -1)
+    o = torch.stack(o, -1).expand_as(d)
+    which = scene.geom_mesh[index][None, None, :, None, None].expand(d.shape[:-1])
+    t, _ = mesh.cast(scene.meshes, which.reshape(-1), o.reshape(-1, 3), d.reshape(-1, 3), scene.znear, scene.zfar)
+    return t.view(d.shape[:-1])
 
 
 def tiled(scene, centre, origin, axes, xs, ys, tile: int, want_which: bool, compiled: bool = False):
@@ -119,8 +136,12 @@ def tiled(scene, centre, origin, axes, xs, ys, tile: int, want_which: bool, comp
         if bi.numel() == 0:
             continue
         geom = index[gi]
-        t = rows_function(kind, compiled)(origin[bi, ci, geom], axes[bi, ci, geom], xt[ci, xi], yt[ci, yi],
-                                          scene.geom_size[geom], clip[0], clip[1]).reshape(-1, tile * tile)
+        if kind == "mesh":
+            t = mesh.rows(scene.meshes, scene.geom_mesh[geom], origin[bi, ci, geom], axes[bi, ci, geom], xt[ci, xi],
+                          yt[ci, yi], scene.znear, scene.zfar).reshape(-1, tile * tile)
+        else:
+            t = rows_function(kind, compiled)(origin[bi, ci, geom], axes[bi, ci, geom], xt[ci, xi], yt[ci, yi],
+                                              scene.geom_size[geom], clip[0], clip[1]).reshape(-1, tile * tile)
         pixel = ((((bi * c + ci) * ty + yi) * tx + xi) * (tile * tile))[:, None] + lane
         depth.scatter_reduce_(0, pixel.reshape(-1), t.reshape(-1), "amin")
         if want_which:

@@ -7,8 +7,8 @@
     viewer.update(env.state)               # pose the bodies as in env 0 of the state (call it every step)
     save_html(scene, (x_pos, x_quat), "rollout.html", dt=env.dt)   # one self-contained file (~1 MB + poses)
 
-Each geom of the :class:`~torchsim.render.Scene` (plane, sphere, capsule, ellipsoid, cylinder, box) becomes a
-mesh in its colour, a child of its torchsim body's frame; per update only the bodies' frames move
+Each geom of the :class:`~torchsim.render.Scene` (plane, sphere, capsule, ellipsoid, cylinder, box, and mesh geoms
+with their own triangles) becomes a mesh in its colour, a child of its torchsim body's frame; per update only the bodies' frames move
 (``State.x_pos`` / ``x_quat``, as :func:`torchsim.render.render` reads them). :func:`save_html` records a
 trajectory into a single HTML file holding viser's client and the recording (playback bar, orbit camera) that
 opens in a browser from disk, with neither torchsim nor Python installed. ``pip install -e '.[viewer]'``
@@ -75,6 +75,14 @@ def geom_mesh(kind: str, size, plane_extent: float = PLANE_EXTENT) -> tuple[np.n
     return np.asarray(mesh.vertices), np.asarray(mesh.faces)
 
 
+def scene_geom_mesh(scene, k: int, plane_extent: float = PLANE_EXTENT) -> tuple[np.ndarray, np.ndarray]:
+    """Vertices and triangles of the scene's geom ``k`` in its own frame: a mesh geom's own (MuJoCo's
+    ``mesh_vert``/``mesh_face``, in the mesh frame, which is the geom frame), else :func:`geom_mesh`."""
+    if scene.geom_mesh is not None and int(scene.geom_mesh[k]) >= 0:
+        return scene.meshes.geometry(int(scene.geom_mesh[k]))
+    return geom_mesh(scene.geom_type[k], scene.geom_size[k].detach().cpu().double().numpy(), plane_extent)
+
+
 def _wxyz(rot: np.ndarray) -> np.ndarray:
     """Unit quaternions ``(..., 4)`` (``wxyz``) of rotation matrices ``(..., 3, 3)``."""
     from viser.transforms import SO3
@@ -127,14 +135,14 @@ class Viewer:
         rgba = scene.geom_rgba.detach().cpu().double().numpy()
         pos = scene.geom_pos.detach().cpu().double().numpy()
         wxyz = _wxyz(scene.geom_rot.detach().cpu().double().numpy())
-        sizes = scene.geom_size.detach().cpu().double().numpy()
         for k, (kind, body) in enumerate(zip(scene.geom_type, scene.geom_body.tolist())):
-            vertices, faces = geom_mesh(kind, sizes[k], plane_extent)
+            vertices, faces = scene_geom_mesh(scene, k, plane_extent)
             parent = f"/body{body}" if body < scene.num_bodies else "/world"
             colour = tuple(int(c) for c in np.clip(np.round(rgba[k, :3] * 255), 0, 255))
             self.server.scene.add_mesh_simple(
                 f"{parent}/geom{int(scene.geom_id[k])}", vertices, faces, color=colour, position=pos[k],
-                wxyz=wxyz[k], side="double" if kind == "plane" else "front", flat_shading=kind in ("box", "plane"))
+                wxyz=wxyz[k], side="double" if kind in ("plane", "mesh") else "front",
+                flat_shading=kind in ("box", "plane"))
 
     @property
     def url(self) -> str:
@@ -244,4 +252,5 @@ def trajectory(system, qpos, batch: int = 256) -> tuple[torch.Tensor, torch.Tens
     return torch.cat(pos), torch.cat(quat)
 
 
-__all__ = ["PLANE_EXTENT", "Viewer", "body_poses", "geom_mesh", "is_loopback", "save_html", "trajectory"]
+__all__ = ["PLANE_EXTENT", "Viewer", "body_poses", "geom_mesh", "is_loopback", "save_html", "scene_geom_mesh",
+           "trajectory"]
