@@ -2,9 +2,10 @@
 
 Each shape pair has a fixed number of contact points (a box on a plane tests its 8 corners), so the contact
 count is static and activity is a mask, never control flow. Geom ``a`` is the lower-ranked shape of a pair
-(sphere < capsule < ellipsoid < cylinder < box < mesh < plane); normals point from ``b`` towards ``a``. Pairs with
-an ellipsoid or a cylinder are computed in ``torchsim.collision_round``, pairs with a mesh (its convex hull) in
-``torchsim.collision_mesh``; each module gives their accuracy.
+(sphere < capsule < ellipsoid < cylinder < box < mesh < plane < hfield); normals point from ``b`` towards ``a``.
+Pairs with an ellipsoid or a cylinder are computed in ``torchsim.collision_round``, pairs with a mesh (its convex
+hull) in ``torchsim.collision_mesh``, pairs with a height field in ``torchsim.collision_hfield``; each module gives
+their accuracy.
 
 Tensors are in the lanes layout (``torchsim.lanes``). A group's ``P`` pairs with ``K`` points each are evaluated as
 ``(*C, P, K, B)``, the point axis at ``-2`` as every entity axis inserted before the batch, and flattened to the
@@ -19,11 +20,11 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import collision_mesh, collision_round, lanes, spatial
+from torchsim import collision_hfield, collision_mesh, collision_round, lanes, spatial
 from torchsim.kinematics import Bodies
 from torchsim.system import System
 
-SHAPE_RANK = {"sphere": 0, "capsule": 1, "ellipsoid": 2, "cylinder": 3, "box": 4, "mesh": 5, "plane": 6}
+SHAPE_RANK = {"sphere": 0, "capsule": 1, "ellipsoid": 2, "cylinder": 3, "box": 4, "mesh": 5, "plane": 6, "hfield": 7}
 # unit box corners (3, 1, 8, 1): components, then broadcast over pairs, the 8 corners, broadcast over the batch
 _CORNERS = torch.tensor([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)],
                         dtype=torch.float64).T[:, None, :, None]
@@ -216,9 +217,9 @@ def _pair_contacts(kind, pa, rot_a, sa, pb, rot_b, sb):
 
 
 def _on_world(group) -> bool:
-    """Whether every pair of a contact group has the static world as body b: plane pairs (the loader puts planes
-    on the world, whose geom frames are world frames)."""
-    return group.kind.endswith("_plane")
+    """Whether every pair of a contact group has the static world as body b: plane and height-field pairs (the
+    loader puts planes and height fields on the world, whose geom frames are world frames)."""
+    return group.kind.endswith(("_plane", "_hfield"))
 
 
 def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Contacts:
@@ -233,7 +234,7 @@ def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Co
         on_world = _on_world(group)
         geom = group.geom_a if on_world else torch.cat((group.geom_a, group.geom_b))  # moving sides' poses at once
         body = sys.geom_body[geom]
-        full = any(shape in group.kind for shape in ("box", "ellipsoid", "cylinder", "mesh"))
+        full = any(shape in group.kind for shape in ("box", "ellipsoid", "cylinder", "mesh", "hfield"))
         frames = geom_rot if full else geom_rot[:, 2:]  # capsules and planes need only their z axes
         x, r = bodies.x_pos.index_select(-2, body), rot.index_select(-2, body)
         world_pos = x + spatial.matvec(r, geom_pos.index_select(-2, geom))
@@ -244,7 +245,10 @@ def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Co
         else:
             (pos_a, pos_b), (rot_a, rot_b) = world_pos.chunk(2, -2), world_rot.chunk(2, -2)
         size_a, size_b = geom_size.index_select(-2, torch.cat((group.geom_a, group.geom_b))).chunk(2, -2)
-        if "mesh" in group.kind:
+        if group.kind.endswith("_hfield"):
+            pt, n, dist = collision_hfield.pair_contacts(sys, group.kind, group.geom_b, lanes.param(group.margin, 1),
+                                                         pos_a, rot_a, size_a, pos_b, rot_b, _box_corners, _point_box)
+        elif "mesh" in group.kind:
             hull_a, hull_b = collision_mesh.hulls(sys, group.geom_a), collision_mesh.hulls(sys, group.geom_b)
             pt, n, dist = collision_mesh.pair_contacts(group.kind, pos_a, rot_a, size_a, hull_a, pos_b, rot_b, size_b,
                                                        hull_b, _box_corners, _point_box)

@@ -12,6 +12,8 @@ POINTS_PER_PAIR = {
     "ellipsoid_plane": 1, "cylinder_plane": 8, "sphere_ellipsoid": 1, "sphere_cylinder": 1, "capsule_ellipsoid": 3,
     "capsule_cylinder": 3, "ellipsoid_ellipsoid": 1, "cylinder_cylinder": 17, "ellipsoid_box": 1,
     "cylinder_box": 29,
+    # height fields: the deepest candidates kept per pair (``torchsim.collision_hfield``)
+    "sphere_hfield": 4, "capsule_hfield": 10, "box_hfield": 12, "ellipsoid_hfield": 6, "cylinder_hfield": 12,
 }
 
 
@@ -204,6 +206,12 @@ class System:
         geom_hull_real: (G, V) false at padding; geom_hull_edge: (G, V, D, 3) [m] the edges from each hull vertex
         to its ``D`` neighbours (padded by repeating the first); geom_hull_plane: (G, F, 4) the hull's face planes
         (outward unit normal, offset [m]), padded by repeating the first.
+        hfield_height: (H,) [m] the height fields' grid vertex elevations (MuJoCo's ``hfield_data`` times
+        ``hfield_size[2]``, row-major at ``hfield_adr``; one for all envs: a task's terrain is
+        ``sys.replace(hfield_height=...)``).  geom_hfield_adr: (G,) a height-field geom's first vertex in it (-1 for
+        other geoms).  geom_hfield_grid: (G, 2) its (nrow, ncol).  geom_hfield_size: (G, 4) MuJoCo's ``hfield_size``
+        (x, y half extents, elevation scale, base) [m].  hfield_windows: ``(kind, Wy, Wx)`` for each ``*_hfield``
+        pair kind, the cells tested around a geom (static; ``torchsim.collision_hfield``).
         contact_soft: whether contacts are MuJoCo's soft constraint (``load_mjcf(contact_model="soft")``, the
         spring method; static).  Per contact point ``C`` (the order of ``collision.contacts``):
         contact_gains: (C, 2) ``K`` [1/s^2], ``B`` [1/s] from the pair's ``solref``.  contact_solimp: (C, 5).
@@ -406,6 +414,11 @@ class System:
     geom_hull_real: torch.Tensor
     geom_hull_edge: torch.Tensor
     geom_hull_plane: torch.Tensor
+    hfield_height: torch.Tensor
+    geom_hfield_adr: torch.Tensor
+    geom_hfield_grid: torch.Tensor
+    geom_hfield_size: torch.Tensor
+    hfield_windows: tuple
     contact_groups: tuple
     contact_soft: bool
     contact_gains: torch.Tensor

@@ -39,13 +39,16 @@ is harmless):
   spheres, capsules, ellipsoids, cylinders, boxes and meshes (``torchsim.collision_mesh``); a hull of more than 64
   vertices is refused by name, unless ``load_mjcf(max_hull_vertices=N)`` caps it (MuJoCo's ``maxhullvert``,
   ``torchsim.io_mjcf.hull_caps``; :func:`mujoco_model` gives the capped MuJoCo model).
+- height fields (``<hfield>``): static (on the world body), against spheres, capsules, boxes, ellipsoids and
+  cylinders, on MuJoCo's triangulated surface in a fixed window of cells around each geom
+  (``torchsim.collision_hfield``; meshes against them are refused); the step kernel refuses them (``loop`` runs them).
 - fluid: ``<option density viscosity wind>`` with MuJoCo's inertia-box model (``torchsim.fluid``); geoms with
   ``fluidshape="ellipsoid"`` are refused.
 - sensors: read from the State by ``torchsim.sensor``/``sensordata`` in MuJoCo's ``sensordata`` layout
   (``torchsim.io_mjcf.sensors`` lists the types computed; the others load with one warning and raise when read).
 
 One module per part of the model: ``subset`` (the checks), ``bodies``, ``joints``, ``actuators``, ``geoms``,
-``tendons``, ``equality``, ``fluid``, ``sensors``, ``hull_caps``.
+``tendons``, ``equality``, ``fluid``, ``sensors``, ``hull_caps``, ``hfields``.
 """
 
 import numbers

@@ -9,6 +9,7 @@ import torch
 from torchsim import joint_space
 from torchsim.collision import SHAPE_RANK
 from torchsim.io_mjcf.bodies import FusedBodies, compose
+from torchsim.io_mjcf.hfields import hfield_fields
 from torchsim.io_mjcf.meshes import hull_fields
 from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
 from torchsim.io_mjcf.tendons import solref_gains
@@ -22,6 +23,7 @@ SHAPE_NAME = {
     int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): "ellipsoid",
     int(mujoco.mjtGeom.mjGEOM_CYLINDER): "cylinder",
     int(mujoco.mjtGeom.mjGEOM_MESH): "mesh",
+    int(mujoco.mjtGeom.mjGEOM_HFIELD): "hfield",
 }
 
 
@@ -46,7 +48,8 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies, contact_soft: bool) -> di
             raise UnsupportedMJCFError(
                 f"geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, bad)!r} of type "
                 f"{mujoco.mjtGeom(m.geom_type[bad]).name} can collide; contact geoms must be plane, sphere, "
-                "capsule, box, ellipsoid, cylinder or mesh (set contype/conaffinity to 0 for visual-only geoms)")
+                "capsule, box, ellipsoid, cylinder, mesh or hfield (set contype/conaffinity to 0 for visual-only "
+                "geoms)")
         if names.count("plane") == 1 and m.body_weldid[m.geom_bodyid[g1 if names[0] == "plane" else g2]] != 0:
             raise UnsupportedMJCFError("planes must belong to the world body")
         (ga, na), (gb, nb) = sorted(((g1, names[0]), (g2, names[1])), key=lambda x: SHAPE_RANK[x[1]])
@@ -75,7 +78,8 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies, contact_soft: bool) -> di
     return dict(
         geom_body=torch.as_tensor([fused.body_of(m, m.geom_bodyid[g]) for g in range(m.ngeom)], dtype=torch.long),
         geom_pos=torch.as_tensor(np.array(gpos).reshape(-1, 3)), geom_quat=torch.as_tensor(np.array(gquat).reshape(-1, 4)),
-        geom_size=torch.as_tensor(m.geom_size.copy()), **hulls, contact_groups=contact_groups,
+        geom_size=torch.as_tensor(m.geom_size.copy()), **hulls, **hfield_fields(m, groups),
+        contact_groups=contact_groups,
         contact_gains=torch.as_tensor(solref_gains(m, solref, solimp)), contact_solimp=torch.as_tensor(solimp),
         contact_invweight=torch.as_tensor(invweight), contact_solimp_square=bool((solimp[:, 4] == 2).all()),
         contact_pyramidal=m.opt.cone == int(mujoco.mjtCone.mjCONE_PYRAMIDAL),

@@ -14,7 +14,6 @@ def check_supported(m: mujoco.MjModel) -> None:
     per-actuator and per-geom limits are checked where those are converted."""
     unsupported = {
         "flexcomp/flex": m.nflex,  # <equality>: io_mjcf.equality; mocap bodies: io_mjcf.bodies
-        "hfield": m.nhfield,
     }
     for element, count in unsupported.items():
         if count:

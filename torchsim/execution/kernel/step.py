@@ -69,6 +69,9 @@ class StepKernel:
         if sys.na:
             raise rows.Unsupported(f"the step kernel does not carry actuator activations (State.act: the model has "
                                    f"{sys.na} activation states)")
+        if sys.hfield_windows:
+            raise rows.Unsupported("the step kernel does not collide height fields (hfield geoms: their cells are "
+                                   "gathered by index, torchsim.collision_hfield)")
         self.substeps, self.device = sys.substeps, sys.device
         # traced on the CPU (the row interpreter reads index tensors as NumPy arrays; the Program it makes does not
         # depend on the device), at two envs (env 0's per-env parameters, the model's rest state): only shapes
