@@ -29,119 +29,22 @@ run's time left; after each run, an estimate of the soak's time left.
 
 import argparse
 import datetime
-import math
+import sys
 import textwrap
 import time
 import warnings
 from pathlib import Path
 
 import torch
-from torchrl.envs.utils import step_mdp
 
-import torchsim
-from torchsim.envs import ENVS, make
+from torchsim.envs import ENVS
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the soak test_stability runs short
+from stability_runs import MODES, describe, soak, watched_env  # noqa: E402
 
 DOCS_PAGE = Path(__file__).resolve().parent.parent / "docs" / "stability.md"
 TABLE_START, TABLE_END = "<!-- soak table: written by studies/soak.py -->", "<!-- end of soak table -->"
-MODES = ("random", "plus", "minus")
-PROGRESS_EVERY = 100  # env steps between progress lines
-ESTIMATE_AFTER = 20  # env steps timed (after the first, which builds the compiled step) before the estimate
 SHOW_DIVERGED = 10  # diverged envs printed per run
-
-
-class DivergenceWatch:
-    """The env's stepper, recording the first divergence of every env: when the engine flags an env, the same
-    physics step is run again from the same state with the divergence bounds off, to see which quantity broke.
-
-    ``first`` holds, per env, the first divergence since the soak began as a dict (env step, step in its
-    episode, quantity, body, value); ``env_step`` and ``episode_step`` are set by the soak loop before each env
-    step."""
-
-    def __init__(self, stepper: torchsim.Stepper):
-        self.stepper = stepper
-        self.sys = stepper.sys  # the env reads its System here
-        self.unbounded = None  # the same step with the bounds off, built on the first divergence
-        self.env_step, self.episode_step = 0, None
-        self.first = {}
-
-    def __call__(self, state: torchsim.State, ctrl: torch.Tensor) -> torchsim.State:
-        new = self.stepper(state, ctrl)
-        newly = new.diverged & ~state.diverged
-        if newly.any():
-            if self.unbounded is None:
-                unbounded_sys = self.sys.replace(max_speed=math.inf, max_distance=math.inf)
-                self.unbounded = torchsim.Stepper(unbounded_sys, self.stepper.strategy)
-            unchecked = self.unbounded(state, ctrl)
-            for env in newly.nonzero().flatten().tolist():
-                self.first.setdefault(env, dict(env_step=self.env_step, episode_step=int(self.episode_step[env]),
-                                                **self.what_broke(unchecked, env)))
-        return new
-
-    def what_broke(self, unchecked: torchsim.State, env: int) -> dict:
-        """The quantity of env ``env``'s state ``unchecked`` (stepped with the bounds off) that fails the bounds,
-        in ``contain_divergence``'s terms: non-finite (then frozen: ``diverged`` set), position, linear speed,
-        angular speed."""
-        if unchecked.diverged[env]:
-            return dict(quantity="non-finite", body="-", value=math.nan)
-        for quantity, values, bound in (("distance [m]", unchecked.x_pos, self.sys.max_distance),
-                                        ("linear speed [m/s]", unchecked.xd_vel, self.sys.max_speed),
-                                        ("angular speed [rad/s]", unchecked.xd_ang, self.sys.max_speed)):
-            per_body = values[env].abs().amax(-1)
-            if per_body.max() >= bound:
-                body = int(per_body.argmax())
-                return dict(quantity=quantity, body=self.sys.body_names[body], value=float(per_body[body]))
-        return dict(quantity="not reproduced", body="-", value=math.nan)
-
-
-def watched_env(name: str, num_envs: int, stepper: str = "auto"):
-    """Env ``name`` at its defaults with ``num_envs`` envs, stepping through a :class:`DivergenceWatch`."""
-    env = make(name, num_envs=num_envs, stepper=stepper)
-    env.stepper = DivergenceWatch(env.stepper)
-    return env
-
-
-def constant_action(env, mode: str) -> torch.Tensor:
-    """The action of ``mode``: the action spec's upper (``plus``) or lower (``minus``) bound for every env."""
-    spec = env.action_spec
-    return (spec.space.high if mode == "plus" else spec.space.low).expand(spec.shape).clone()
-
-
-def soak(env, mode: str, steps: int, seed: int = 0) -> dict:
-    """Step ``env`` ``steps`` times under action mode ``mode`` with resets; the diverged envs and the rate."""
-    watch = env.stepper
-    watch.first = {}
-    torch.manual_seed(seed)
-    td = env.reset()
-    action = None if mode == "random" else constant_action(env, mode)
-    ended = 0
-    start = time.perf_counter()
-    timed_from = None
-    for t in range(steps):
-        watch.env_step, watch.episode_step = t, env.step_count.clone()
-        td["action"] = env.action_spec.rand() if action is None else action
-        td = env.step(td)
-        ended += int(td["next", "done"].sum())
-        td = env.maybe_reset(step_mdp(td))
-        if t == 0:
-            timed_from = time.perf_counter()  # the first step builds (or loads) the compiled step
-        if t > 0 and (t == ESTIMATE_AFTER or (t + 1) % PROGRESS_EVERY == 0 or t + 1 == steps):
-            rate = t * env.batch_size[0] / max(time.perf_counter() - timed_from, 1e-9)
-            print(f"  {type(env).__name__} {mode}: step {t + 1}/{steps}, {rate:,.0f} env-steps/s, diverged envs "
-                  f"{len(watch.first)}, ETA {(steps - t - 1) * env.batch_size[0] / rate:.0f} s", flush=True)
-    wall = time.perf_counter() - start
-    rate = (steps - 1) * env.batch_size[0] / (time.perf_counter() - timed_from) if steps > 1 else math.nan
-    return dict(diverged=len(watch.first), first=sorted(watch.first.items(), key=lambda e: e[1]["env_step"]),
-                ended=ended, rate=rate, wall=wall)
-
-
-def describe(first: list) -> str:
-    """The earliest divergence of a run, for the table."""
-    if not first:
-        return "-"
-    env, f = first[0]
-    value = "" if math.isnan(f["value"]) else f" = {f['value']:.3g}"
-    return (f"step {f['env_step']} (episode step {f['episode_step']}), env {env}: {f['quantity']} of "
-            f"{f['body']}{value}")
 
 
 def write_docs(rows: dict, options: str) -> None:

@@ -20,8 +20,8 @@ env step) as the reference, MuJoCo at timestep / 10 with the MJCF's integrator (
 - contact models, measures that do not hinge on chaos: ``settle_err_m`` = |root height - reference| after
   ``settle`` s with zero control from the initial pose (ant, halfcheetah: at rest after 2 s; humanoid: 0.5 s into
   its collapse, before it topples, the moment MuJoCo's own settings agree on); ``root_err_m`` = max |root position
-  - reference| over 0.25 s of full-range random controls (studies/check_models.py's check), short enough that
-  MuJoCo's settings still agree to ~1 cm.
+  - reference| over 0.25 s of full-range random controls (studies/check_models.py's check, from
+  tests/model_rollouts.py), short enough that MuJoCo's settings still agree to ~1 cm.
 - ``anchor_gap_m``: torchsim's joint constraint violation, the largest joint-anchor separation seen at any env step
   of these runs (MuJoCo, in generalized coordinates, has none). ``diverged``: torchsim's divergence flag.
 
@@ -56,7 +56,7 @@ from torchsim.kinematics import anchor_gap
 
 REPO = Path(__file__).resolve().parent.parent
 sys.path[:0] = [str(REPO / "benchmarks"), str(REPO / "tests")]  # the timing helpers, the reference models
-import check_models
+import model_rollouts  # the model checks' starts and actions (tests/model_rollouts.py)
 from _speed_accuracy_plot import plot_model
 from _timing import allow_recompiles, median_rate, mujoco_rollout_rate, mujoco_start_states
 from test_mujoco_reference import TRIPLE
@@ -127,18 +127,18 @@ def _random_torques(horizon: float, scale: float, seed: int = 0) -> Callable:
 
 
 def _settle_and_random(name: str, settle: float) -> Callable:
-    """Two scenarios: zero control for ``settle`` s, and check_models' 0.25 s of full-range random controls."""
+    """Two scenarios: zero control for ``settle`` s, and model_rollouts' 0.25 s of full-range random controls."""
     def controls(m):
         steps = round(settle / (m.opt.timestep * ENVS[name].frame_skip))
-        return [np.zeros((steps, m.nu)), check_models.actions(name, m)]
+        return [np.zeros((steps, m.nu)), model_rollouts.actions(name, m)]
     return controls
 
 
 def _env(name: str, settle: float) -> Model:
     env = ENVS[name]
-    default = env.substeps or torchsim.load_mjcf(check_models.path(name)).substeps
-    return Model(Path(check_models.path(name)).read_text(), env.frame_skip, env.substeps,
-                 (default // 2, default, 2 * default), False, lambda m: check_models.initial_state(name, m),
+    default = env.substeps or torchsim.load_mjcf(model_rollouts.path(name)).substeps
+    return Model(Path(model_rollouts.path(name)).read_text(), env.frame_skip, env.substeps,
+                 (default // 2, default, 2 * default), False, lambda m: model_rollouts.initial_state(name, m),
                  _settle_and_random(name, settle))
 
 
@@ -172,7 +172,7 @@ def mujoco_runs(model: Model, factor: int = 1, integrator: str | None = None) ->
     """Per scenario, MuJoCo's (qpos, root xpos) per env step at timestep / ``factor``."""
     m0 = mujoco_model(model)
     m = mujoco_model(model, factor, integrator)
-    return [check_models.mujoco_trajectory(m, *model.start(m0), acts, model.frame_skip * factor)
+    return [model_rollouts.mujoco_trajectory(m, *model.start(m0), acts, model.frame_skip * factor)
             for acts in model.controls(m0)]
 
 

@@ -29,8 +29,7 @@ itself has the bounds switched off; ``flagged`` counts the failing envs that the
 import argparse
 import csv
 import dataclasses
-import inspect
-import math
+import sys
 import textwrap
 import time
 import warnings
@@ -38,32 +37,25 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tensordict import TensorDict
 
 import torchsim
 from torchsim import spatial
-from torchsim import rigid
 from torchsim.envs import ENVS, make
-from torchsim.kinematics import anchor_gap, dof_values, joint_frames, with_world
-from torchsim.lanes import from_lanes
+from torchsim.kinematics import anchor_gap
 from torchsim.pipeline import contain_divergence, to_lanes_state
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))  # the chain, the env runs: tests share them
+from stability_runs import (FLAG_BOUNDS, HORIZON_S, KAPPA_DEFAULT, SEPARATION_BOUND_M,  # noqa: E402
+                            bare_dof_inverse_inertia, chain_system, env_default_run, initial_state,
+                            substeps_per_env_step)
+
 DOCS = Path(__file__).resolve().parent.parent / "docs"
-LINKS = 4
-LINK_LENGTH_M = 0.5
 SAMPLES = 4
-HORIZON_S = 0.5
 H_GRID_S = (5e-4, 1e-3, 2e-3, 4e-3, 8e-3, 1.6e-2)
 # Energy may not grow in a passive undamped chain; 10 % of the start's energy above rest is above the integrators'
 # fluctuation (measured < 2 % in the stable cells without joint springs) and far below a blow-up (x 1e3 and more).
 ENERGY_BOUND = 0.1
-# 1 cm on 0.5 m links: ten times the 1 mm the accuracy tests allow for joint anchors (tests/test_mujoco_reference.py).
-SEPARATION_BOUND_M = 0.01
-OMEGA_SWING = 10.0  # [rad/s] initial angles shrink by OMEGA_SWING / omega on stiffer springs
 OUTCOMES = ("ok", "separation", "energy", "nonfinite")  # by severity
-_LOAD_DEFAULTS = inspect.signature(torchsim.load_mjcf).parameters
-FLAG_BOUNDS = {k: _LOAD_DEFAULTS[k].default for k in ("max_speed", "max_distance")}
-KAPPA_DEFAULT = _LOAD_DEFAULTS["joint_stiffness"].default
 RATIOS = (1, 3, 10, 30, 100, 300, 1000)
 OMEGAS = (10, 30, 100, 300, 1000, 3000, 10000)
 KAPPAS = (0.05, 1, 2)  # and KAPPA_DEFAULT, a cell of the spring run
@@ -94,35 +86,6 @@ AXIS_LABEL = {"mass_ratio": "mass ratio of linked bodies", "omega": "joint sprin
               "kappa": "spring joint_stiffness (kappa)"}
 
 
-def chain_mjcf(h: float) -> str:
-    """The hanging chain with MJCF timestep ``h`` [s]."""
-    body = ""
-    for i in reversed(range(LINKS)):
-        body = (f'<body name="link{i}" pos="0 0 {-LINK_LENGTH_M if i else 0}"><joint type="hinge" axis="0 1 0"/>'
-                f'<geom type="capsule" fromto="0 0 0 0 0 {-LINK_LENGTH_M}" size="0.03" mass="1" contype="0" '
-                f'conaffinity="0"/>{body}</body>')
-    return f'<mujoco><option timestep="{h}"/><worldbody>{body}</worldbody></mujoco>'
-
-
-def chain_system(method: str, h: float, mass_ratio: torch.Tensor, omega: torch.Tensor, kappa: float = KAPPA_DEFAULT,
-                 iterations: int = 1) -> torchsim.System:
-    """Chain System for envs with link mass ratios ``mass_ratio (B,)`` and joint spring frequencies ``omega (B,)``
-    [rad/s] (0: no spring); the divergence bounds are off (see the module docstring)."""
-    sys = torchsim.load_mjcf(chain_mjcf(h), method=method, substeps=1, joint_stiffness=kappa,
-                             xpbd_iterations=iterations, max_speed=math.inf, max_distance=math.inf)
-    scale = torch.where(torch.arange(LINKS) % 2 == 1, mass_ratio[:, None], 1.0)
-    sys = sys.replace(body_mass=sys.body_mass * scale, body_inertia=sys.body_inertia * scale[..., None, None])
-    return sys.replace(dof_stiffness=omega[:, None] ** 2 / bare_dof_inverse_inertia(sys))
-
-
-def bare_dof_inverse_inertia(sys: torchsim.System) -> torch.Tensor:
-    """``(B or 1, D)`` inverse inertia of each dof on its two bare bodies at q0 (``rigid.dof_inverse_mass``): what an
-    explicit joint torque accelerates in maximal coordinates before the joints couple the links."""
-    bodies = with_world(*torchsim.kinematics.forward(sys, sys.q0[None], torch.zeros(1, sys.nv, dtype=sys.dtype)))
-    inv = rigid.inverse_inertia(sys, bodies.x_quat, rigid.body_inverse_inertia(sys))
-    return from_lanes(rigid.dof_inverse_mass(sys, inv, dof_values(sys, joint_frames(sys, bodies).axes)))
-
-
 def joint_spring_omega(sys: torchsim.System) -> torch.Tensor:
     """``(B or 1, D)`` natural frequency [rad/s] of each dof's springs: MJCF stiffness plus position-servo gain
     (``-bias1 gear^2``), on the dof's bare links plus its armature (the spring method moves armature with the dof
@@ -141,14 +104,6 @@ def mechanical_energy(sys: torchsim.System, state: torchsim.State) -> torch.Tens
     gravity = -(sys.body_mass * (state.x_pos * sys.gravity).sum(-1)).sum(-1)
     stretch = state.q[:, sys.dof_qpos] - sys.dof_springref
     return kinetic + gravity + 0.5 * (sys.dof_stiffness * stretch ** 2).sum(-1)
-
-
-def initial_state(sys: torchsim.System, omega: torch.Tensor, gen: torch.Generator) -> torchsim.State:
-    """Hinge angles U(-1, 1) rad, shrunk by ``OMEGA_SWING / omega`` where that is below 1, and rates N(0, 1) rad/s."""
-    batch = omega.shape[0]
-    swing = torch.clamp(OMEGA_SWING / omega, max=1.0)[:, None]
-    q = swing * (2 * torch.rand(batch, sys.nq, generator=gen) - 1)
-    return torchsim.init(sys, q, torch.randn(batch, sys.nv, generator=gen))
 
 
 def run_cells(sys: torchsim.System, state: torchsim.State, seconds: float) -> dict[str, torch.Tensor]:
@@ -268,28 +223,6 @@ def _mark_envs(ax, axis: str, marks: list[dict], hs: list, values: list) -> None
         ax.plot(x, y, "kx", ms=7)
         ax.annotate(textwrap.fill(", ".join(names), 20), (x, y), xytext=(4, 4), textcoords="offset points",
                     fontsize=6)
-
-
-def env_default_run(name: str, env_steps: int, batch: int = 2, seed: int = 0) -> dict:
-    """Step env ``name`` at its defaults (model, method, substeps, float32, reset distribution, action mapping) for
-    ``env_steps`` env steps of uniform random actions in [-1, 1] (one draw per env step, held over its frames), no
-    resets. Returns whether any env diverged, whether the state is finite, and the largest joint anchor gap [m]
-    over the batch at each env-step boundary: its median (a torn joint stays apart) and its peak (impacts spike)."""
-    torch.manual_seed(seed)
-    env = make(name, num_envs=batch)
-    gaps = []
-    for _ in range(env_steps):
-        env.step(TensorDict(action=2 * torch.rand(batch, env.sys.nu, dtype=env.sys.dtype) - 1, batch_size=[batch]))
-        gaps.append(anchor_gap(env.sys, env.state).max())
-    state, gaps = env.state, torch.stack(gaps)
-    return dict(diverged=bool(state.diverged.any()), finite=all(bool(t.isfinite().all()) for t in state[:6]),
-                median_gap_m=float(gaps.median()), max_gap_m=float(gaps.max()))
-
-
-def substeps_per_env_step(name: str) -> int:
-    """Physics substeps in one env step of env ``name`` at its defaults (``frame_skip x substeps``)."""
-    env = make(name)
-    return env.frame_skip * env.sys.substeps
 
 
 def main():

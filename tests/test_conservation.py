@@ -1,20 +1,16 @@
-"""Conservation laws on studies/conservation.py's free-floating chain (zero gravity, no contacts, damping, limits
-or actuators; docs/conservation.md): both methods keep the linear momentum to
-rounding, and the angular momentum and kinetic energy to an error that shrinks with the step h."""
-
-import sys
-from pathlib import Path
+"""Conservation laws on the free-floating chain of studies/conservation.py (scenes and measures:
+tests/conservation_scenes.py; zero gravity, no contacts, damping, limits or actuators; docs/conservation.md): both
+methods keep the linear momentum to rounding, and the angular momentum and kinetic energy to an error that shrinks
+with the step h."""
 
 import mujoco
 import numpy as np
 import pytest
 import torch
 
+import conservation_scenes as cs
 import torchsim
 from models import F64, METHODS
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
-import conservation as cs  # noqa: E402
 
 SECONDS = 0.2
 CHAIN = cs.SCENES["chain"]

@@ -1,21 +1,16 @@
 """The Brax-suite env models in envs/assets: they load (spring and xpbd), enumerate the intended contact pairs, pose
 like MuJoCo, stay finite, and follow MuJoCo on the same MJCF under the same open-loop actions.
 
-The rollouts, actions and metrics live in ``studies/check_models.py`` (which prints the full table); here each
-model runs once at its recommended substep count, float64, eager, batch 3 (env 0: the compared actions; env 1:
-zero controls; env 2: full-range random controls of another seed, for the divergence check).
+The rollouts, actions and metrics live in ``tests/model_rollouts.py`` (``studies/check_models.py`` prints the full
+table from them); here each model runs once at its recommended substep count, float64, eager, batch 3 (env 0: the
+compared actions; env 1: zero controls; env 2: full-range random controls of another seed, for the divergence check).
 """
-
-import sys
-from pathlib import Path
 
 import mujoco
 import pytest
 
+import model_rollouts as cm
 import torchsim
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
-import check_models as cm  # noqa: E402
 
 # (nq, nv, nu, bodies after fusing, contact pairs) of each model (brax.md section 2.2 for the layouts).
 LAYOUT = {
@@ -28,7 +23,7 @@ LAYOUT = {
     "pusher": (11, 11, 7, 8, 3),
 }
 
-# Bound on the compared trajectory error vs MuJoCo at the model's own timestep (studies/check_models.py metric:
+# Bound on the compared trajectory error vs MuJoCo at the model's own timestep (tests/model_rollouts.py metric:
 # root position [m] over 0.25 s for hopper/walker2d/halfcheetah, max |q| [rad, m] over 1 s for reacher and the
 # pendulums, arm joints [rad] over 1 s for the pusher). Each is ~2-3x the measured error (spring, recommended
 # substeps, MuJoCo 4.0); "MuJoCo dt vs dt/4" is MuJoCo's own timestep sensitivity on the same metric.

@@ -1,22 +1,18 @@
-"""The stability boundary of docs/stability.md (map: studies/stability_map.py): inside the documented stable region
-every env runs long random-action rollouts without diverging; outside it the divergence flag fires and the state
-returned is the frozen last good one, not garbage."""
+"""The stability boundary of docs/stability.md (map: studies/stability_map.py; the runs: tests/stability_runs.py):
+inside the documented stable region every env runs long random-action rollouts without diverging; outside it the
+divergence flag fires and the state returned is the frozen last good one, not garbage."""
 
 import math
-import sys
-from pathlib import Path
 
 import mujoco
 import pytest
 import torch
 
+import stability_runs as sr
 import torchsim
 from models import METHODS
 from torchsim.envs import ENVS
-
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "studies"))
-import soak  # noqa: E402
-import stability_map as sm  # noqa: E402
+from torchsim.kinematics import anchor_gap
 
 # Physics integration steps (substeps: one step of the env's method at its h) per env. 10,000 do not fit the CI
 # budget: eager substeps cost 3-9 ms, and 10,000 for each of 12 envs took 16.5 CPU minutes on the loaded 2-core dev
@@ -31,14 +27,14 @@ def test_env_defaults_run_5000_substeps(name):
     ``ceil(5,000 / (frame_skip x substeps))`` env steps, i.e. at least 5,000 substeps at the env's h, under
     uniform random actions in [-1, 1] held per env step (no resets): no env diverges, the state stays finite, and
     joint anchors (read at env-step boundaries) typically stay within the map's 1 cm separation bound."""
-    env_steps = math.ceil(SUBSTEPS / sm.substeps_per_env_step(name))
-    result = sm.env_default_run(name, env_steps, batch=2, seed=0)
+    env_steps = math.ceil(SUBSTEPS / sr.substeps_per_env_step(name))
+    result = sr.env_default_run(name, env_steps, batch=2, seed=0)
     print(f"{name}: {env_steps} env steps, anchor gap median {result['median_gap_m'] * 1e3:.2f} mm, "
           f"max {result['max_gap_m'] * 1e3:.2f} mm")
     assert not result["diverged"] and result["finite"]
     # The median, not the peak: driven at full-range random actions the spring method's joints spike under impacts
     # (ant: 1-7 cm for a few env steps, median 2 mm; docs/stability.md), while a torn joint stays apart.
-    assert result["median_gap_m"] < sm.SEPARATION_BOUND_M
+    assert result["median_gap_m"] < sr.SEPARATION_BOUND_M
 
 
 # The soak's short version (studies/soak.py; docs/stability.md, "Soak"): the Ant, the env that diverged under constant
@@ -55,10 +51,10 @@ def test_soak_short_ant_no_divergence():
     """256 Ants at their defaults, 100 env steps of each of the soak's action modes (uniform random, constant +1,
     constant -1) with resets: no env diverges. Then, without resets under constant random controls (tumbling Ants,
     the setting of the old divergence): no env diverges and no hinge goes more than 15 degrees past its range."""
-    env = soak.watched_env("ant", SOAK_NUM_ENVS)
-    for mode in soak.MODES:
-        result = soak.soak(env, mode, SOAK_STEPS)
-        assert result["diverged"] == 0, f"ant, {mode} actions: {soak.describe(result['first'])}"
+    env = sr.watched_env("ant", SOAK_NUM_ENVS)
+    for mode in sr.MODES:
+        result = sr.soak(env, mode, SOAK_STEPS)
+        assert result["diverged"] == 0, f"ant, {mode} actions: {sr.describe(result['first'])}"
 
     env.reset()
     ctrl = env._ctrl(2 * torch.rand(SOAK_NUM_ENVS, env.sys.nu, dtype=env.sys.dtype) - 1)
@@ -86,18 +82,18 @@ ARM_LIMIT_RAD, ARM_OVERSHOOT_RAD = 3.0, 0.5  # joint1's upper limit; MuJoCo's so
 def test_soak_short_reacher_no_divergence():
     """16 reachers at their defaults, 20 env steps of constant +1: no env diverges, and joint1 ends near its upper
     limit."""
-    env = soak.watched_env("reacher", ARM_NUM_ENVS, stepper="eager")
-    result = soak.soak(env, "plus", ARM_STEPS)
-    assert result["diverged"] == 0, f"reacher, plus actions: {soak.describe(result['first'])}"
+    env = sr.watched_env("reacher", ARM_NUM_ENVS, stepper="eager")
+    result = sr.soak(env, "plus", ARM_STEPS)
+    assert result["diverged"] == 0, f"reacher, plus actions: {sr.describe(result['first'])}"
     assert (env.state.q[:, 1] < ARM_LIMIT_RAD + ARM_OVERSHOOT_RAD).all()
 
 
-def _chain(method: str, h: float, omegas=(0.0, 0.0), mass_ratio: float = 1.0, kappa: float = sm.KAPPA_DEFAULT):
+def _chain(method: str, h: float, omegas=(0.0, 0.0), mass_ratio: float = 1.0, kappa: float = sr.KAPPA_DEFAULT):
     """The map's chain with the flag's default bounds, one env per joint-spring frequency in ``omegas`` [rad/s];
     returns the System and its seeded initial state."""
     omega = torch.tensor(omegas)
-    sys = sm.chain_system(method, h, torch.full_like(omega, mass_ratio), omega, kappa).replace(**sm.FLAG_BOUNDS)
-    return sys, sm.initial_state(sys, omega, torch.Generator().manual_seed(0))
+    sys = sr.chain_system(method, h, torch.full_like(omega, mass_ratio), omega, kappa).replace(**sr.FLAG_BOUNDS)
+    return sys, sr.initial_state(sys, omega, torch.Generator().manual_seed(0))
 
 
 def _rollout(sys: torchsim.System, state: torchsim.State, seconds: float) -> list[torchsim.State]:
@@ -162,8 +158,8 @@ def test_torn_chain_is_flagged(method):
     """A chain whose joints have come apart by more than ``TORN_GAP_M`` (10 cm on 0.5 m links, 100x what the accuracy
     tests allow) should be flagged. It is not: this pins the defect until the flag learns joint separation."""
     sys, state = _chain(method, TORN_H_S, mass_ratio=TORN_MASS_RATIO)
-    states = _rollout(sys, state, sm.HORIZON_S)
-    torn = torch.stack([sm.anchor_gap(sys, s) for s in states]).amax(0) > TORN_GAP_M
+    states = _rollout(sys, state, sr.HORIZON_S)
+    torn = torch.stack([anchor_gap(sys, s) for s in states]).amax(0) > TORN_GAP_M
     assert torn.all(), "precondition: every env's chain tears at this setting"
     if not states[-1].diverged.all():
         raise MissedDivergence(f"{int((~states[-1].diverged).sum())} torn envs not flagged")
