@@ -198,7 +198,7 @@ def test_meshes_agree_with_mujoco_renderer():
 
 
 @pytest.mark.skipif(not PANDA.exists(), reason=f"robosuite's Panda is not in the third-party cache ({PANDA}; "
-                    "scripts/check_robot_models.py --packages robosuite fetches it)")
+                    "studies/check_robot_models.py --packages robosuite fetches it)")
 def test_panda_agrees_with_mujoco_renderer():
     """robosuite's Panda (50 visual meshes, 0.14 M triangles) at 3 random poses (measured: depth and
     segmentation agree on 100% of pixels; p99 depth error 5e-7 m)."""
