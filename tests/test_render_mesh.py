@@ -155,6 +155,12 @@ def test_bvh_hits_what_brute_force_hits():
         np.testing.assert_allclose(t.numpy(), expect, rtol=1e-9, atol=1e-12)
         hit = torch.isfinite(t)
         assert (tri[hit] >= 0).all() and (tri[~hit] == -1).all()
+        # told a surface lies at the nearest hit (or halfway), a ray still finds it (or anything beyond the bound)
+        for scale in (1.0, 0.5):
+            limit = torch.as_tensor(np.where(np.isfinite(expect), scale * expect, 10.0))
+            bounded, _ = mesh_bvh.cast(meshes, torch.full((3000,), k), torch.as_tensor(o), torch.as_tensor(d), 0.01,
+                                       10.0, limit=limit)
+            assert (bounded[hit] == t[hit]).all() if scale == 1.0 else (bounded[hit] > limit[hit]).all()
         # the triangle found is one at that depth: its face normal is along the hit point's offset on the sphere
         if k == 0:
             point = o[hit.numpy()] + t[hit].numpy()[:, None] * d[hit.numpy()]

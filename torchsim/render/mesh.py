@@ -178,7 +178,8 @@ def _tree(tri: np.ndarray):
         index = np.arange((1 << level) - 1, (1 << (level + 1)) - 1)
         lo[index] = np.fmin(lo[2 * index + 1], lo[2 * index + 2])
         hi[index] = np.fmax(hi[2 * index + 1], hi[2 * index + 2])
-    return depth, lo, hi, slots, tri
+    pad = 1e-6 * np.abs(tri).max(initial=0.0)  # float32 rounding of the edges must not leave a box
+    return depth, lo - pad, hi + pad, slots, tri
 
 
 def _safe(x):
@@ -186,17 +187,19 @@ def _safe(x):
 
 
 def cast(meshes: Meshes, mesh: torch.Tensor, o: torch.Tensor, d: torch.Tensor, znear, zfar,
-         want_tri: bool = False):
+         want_tri: bool = False, limit: torch.Tensor | None = None):
     """Nearest hits of rays ``o + t d`` (``o``, ``d``: (R, 3), in the frame of mesh ``mesh (R,)``) with
     ``znear < t < zfar``: ``t (R,)`` (inf: none) and, if asked, the triangle hit ``(R,)`` (into ``meshes.normal``;
-    -1: none)."""
+    -1: none). ``limit (R,)``: where given, each ray's hits beyond it are not needed (a nearer surface is known:
+    boxes entered after it are skipped, and ``t`` may then be anything above it)."""
     count = o.shape[0]
     if count > RAYS_PER_CHUNK:
         parts = [cast(meshes, mesh[s:s + RAYS_PER_CHUNK], o[s:s + RAYS_PER_CHUNK], d[s:s + RAYS_PER_CHUNK], znear,
-                      zfar, want_tri) for s in range(0, count, RAYS_PER_CHUNK)]
+                      zfar, want_tri, None if limit is None else limit[s:s + RAYS_PER_CHUNK])
+                 for s in range(0, count, RAYS_PER_CHUNK)]
         return torch.cat([p[0] for p in parts]), (torch.cat([p[1] for p in parts]) if want_tri else None)
-    ray_table = torch.cat((o, 1.0 / _safe(d)), 1)  # (R, 6): origin, inverse direction
-    box = torch.cat((meshes.node_lo, meshes.node_hi), 1)  # (Nn, 6)
+    inv = 1.0 / _safe(d)
+    lo, hi = meshes.node_lo, meshes.node_hi
     first = meshes.start.index_select(0, mesh)
     ray = o.new_zeros(0, dtype=torch.long)
     node = ray
@@ -207,11 +210,15 @@ def cast(meshes: Meshes, mesh: torch.Tensor, o: torch.Tensor, d: torch.Tensor, z
             node = torch.cat((node, meshes.root.index_select(0, mesh.index_select(0, new))))
         if ray.numel() == 0:
             continue
-        r, b = ray_table.index_select(0, ray), box.index_select(0, node)
-        t1, t2 = (b[:, :3] - r[:, :3]) * r[:, 3:], (b[:, 3:] - r[:, :3]) * r[:, 3:]  # the slabs' two planes
+        oo, ii = o.index_select(0, ray), inv.index_select(0, ray)
+        t1 = (lo.index_select(0, node) - oo).mul_(ii)  # the slabs' two planes
+        t2 = (hi.index_select(0, node) - oo).mul_(ii)
         near = torch.minimum(t1, t2).amax(1)  # NaN (an empty node) propagates and fails the test
         far = torch.maximum(t1, t2).amin(1)
-        keep = ((near <= far) & (far > znear) & (near < zfar)).nonzero().squeeze(1)
+        ok = (near <= far) & (far > znear) & (near < zfar)
+        if limit is not None:  # a tie with the known surface is kept: segmentation breaks ties by geom
+            ok &= near <= limit.index_select(0, ray)
+        keep = ok.nonzero().squeeze(1)
         ray, node, near = ray.index_select(0, keep), node.index_select(0, keep), near.index_select(0, keep)
         if level < meshes.depth:
             left = meshes.node_left.index_select(0, node)
@@ -224,7 +231,8 @@ def cast(meshes: Meshes, mesh: torch.Tensor, o: torch.Tensor, d: torch.Tensor, z
         nearest = torch.full_like(t, float("inf")).scatter_reduce_(0, ray, near, "amin")
         first = near <= nearest.index_select(0, ray)
         _leaves(meshes, ray[first], node[first], o, d, znear, zfar, t, keys)
-        rest = (~first & (near <= t.index_select(0, ray))).nonzero().squeeze(1)
+        bound = t if limit is None else torch.minimum(t, limit)
+        rest = (~first & (near <= bound.index_select(0, ray))).nonzero().squeeze(1)
         _leaves(meshes, ray.index_select(0, rest), node.index_select(0, rest), o, d, znear, zfar, t, keys)
     tri_hit = torch.where(torch.isfinite(t), keys & 0xFFFFFFFF, -1) if want_tri else None
     return t, tri_hit
@@ -247,8 +255,8 @@ def _leaves(meshes, ray, node, o, d, znear, zfar, t, keys):
 def _triangles(meshes, tri, o, d, znear, zfar):
     """Möller-Trumbore, both faces: ray parameters ``(P, S)`` of rays ``o``, ``d`` ``(P, 1, 3)`` against
     triangles ``tri (P, S)`` (inf: a miss)."""
-    v0, e1, e2 = torch.cat((meshes.v0, meshes.e1, meshes.e2), 1).index_select(0, tri.reshape(-1)).view(
-        *tri.shape, 3, 3).unbind(-2)
+    index = tri.reshape(-1)
+    v0, e1, e2 = (x.index_select(0, index).view(*tri.shape, 3) for x in (meshes.v0, meshes.e1, meshes.e2))
     p = torch.linalg.cross(d.expand_as(e2), e2)
     det = (e1 * p).sum(-1)
     inv = 1.0 / det  # a degenerate (padding) triangle: inf, and NaNs below, which fail every test
@@ -261,16 +269,16 @@ def _triangles(meshes, tri, o, d, znear, zfar):
     return torch.where(ok, t, float("inf"))
 
 
-def rows(meshes: Meshes, mesh, o, e, x, y, znear, zfar):
+def rows(meshes: Meshes, mesh, o, e, x, y, znear, zfar, limit=None):
     """Hits ``t (K, T, T)`` of ``K`` (camera, mesh geom, tile) rows, as :func:`torchsim.render.nearest._rows`:
     ray origins ``o (K, 3)`` and geom axes ``e (K, 3, 3)`` in the camera frame, tile slopes ``x (K, T)``,
-    ``y (K, T)``, mesh indices ``mesh (K,)``."""
+    ``y (K, T)``, mesh indices ``mesh (K,)``; ``limit (K, T, T)``: as :func:`cast`'s."""
     k, tx, ty = o.shape[0], x.shape[1], y.shape[1]
     d = torch.stack([e[:, None, None, 0, j] * x[:, None, :] + e[:, None, None, 1, j] * y[:, :, None]
                      - e[:, None, None, 2, j] for j in range(3)], -1)  # (K, T, T, 3)
     oo = o[:, None, None, :].expand_as(d)
     t, _ = cast(meshes, mesh[:, None, None].expand(k, ty, tx).reshape(-1), oo.reshape(-1, 3), d.reshape(-1, 3),
-                znear, zfar)
+                znear, zfar, limit=None if limit is None else limit.reshape(-1))
     return t.view(k, ty, tx)
 
 

@@ -13,7 +13,10 @@ and gives the same images (the culling is conservative). The geom seen by a pixe
 scatter-min on a key packing the hit's float32 depth bits above the geom's index.
 
 Mesh geoms take the same paths: their rays (the same origin and per-pixel directions in the geom's frame) go
-through the mesh's BVH (:func:`torchsim.render.mesh.cast`) instead of a closed form, always eagerly.
+through the mesh's BVH (:func:`torchsim.render.mesh.cast`) instead of a closed form, always eagerly, after the
+closed-form shapes: each ray skips the boxes behind the depth its pixel already has. (Casting a robot's mesh
+rows in batches, nearest geoms first, to skip parts hidden behind nearer meshes, measured no faster on robosuite's
+Panda: 20% fewer leaf tests, the same time.)
 """
 
 import torch
@@ -82,7 +85,7 @@ def dense(scene, origin, axes, xs, ys, want_which: bool):
         o = tuple(origin[:, :, index, k, None, None] for k in range(3))
         d = _directions(axes[:, :, index, None, None], x, y)
         if kind == "mesh":
-            t = _mesh_dense(scene, index, o, d)
+            t = _mesh_dense(scene, index, o, d, depth)
         else:
             size = tuple(scene.geom_size[index, k][:, None, None] for k in range(3))
             t = raycast.HIT[kind](o, d, size, scene.znear, scene.zfar)
@@ -93,14 +96,16 @@ def dense(scene, origin, axes, xs, ys, want_which: bool):
     return depth, which
 
 
-def _mesh_dense(scene, index, o, d):
+def _mesh_dense(scene, index, o, d, depth):
     """Hits ``(b, C, g, H, W)`` of every pixel's ray with the mesh geoms ``index`` (ray components as in
-    :func:`dense`)."""
+    :func:`dense`; hits behind ``depth (b, C, H, W)`` are not needed)."""
     d = torch.stack(torch.broadcast_tensors(*d), -1)
     o = torch.stack(o, -1).expand_as(d)
     which = scene.geom_mesh[index][None, None, :, None, None].expand(d.shape[:-1])
-    t, _ = mesh.cast(scene.meshes, which.reshape(-1), o.reshape(-1, 3), d.reshape(-1, 3), scene.znear, scene.zfar)
-    return t.view(d.shape[:-1])
+    limit = depth[:, :, None].expand(d.shape[:-1])
+    t, _ = mesh.cast(scene.meshes, which.reshape(-1), o.reshape(-1, 3), d.reshape(-1, 3), scene.znear, scene.zfar,
+                     limit=limit.reshape(-1))
+    return t.view(d.shape[:-1])  # hits behind ``depth`` may be any value above it: they change nothing
 
 
 def tiled(scene, centre, origin, axes, xs, ys, tile: int, want_which: bool, compiled: bool = False):
@@ -136,13 +141,14 @@ def tiled(scene, centre, origin, axes, xs, ys, tile: int, want_which: bool, comp
         if bi.numel() == 0:
             continue
         geom = index[gi]
-        if kind == "mesh":
+        pixel = ((((bi * c + ci) * ty + yi) * tx + xi) * (tile * tile))[:, None] + lane
+        if kind == "mesh":  # each ray skips what lies behind its pixel's depth so far (the closed-form shapes')
             t = mesh.rows(scene.meshes, scene.geom_mesh[geom], origin[bi, ci, geom], axes[bi, ci, geom], xt[ci, xi],
-                          yt[ci, yi], scene.znear, scene.zfar).reshape(-1, tile * tile)
+                          yt[ci, yi], scene.znear, scene.zfar, limit=depth[pixel].view(-1, tile, tile))
+            t = t.reshape(-1, tile * tile)
         else:
             t = rows_function(kind, compiled)(origin[bi, ci, geom], axes[bi, ci, geom], xt[ci, xi], yt[ci, yi],
                                               scene.geom_size[geom], clip[0], clip[1]).reshape(-1, tile * tile)
-        pixel = ((((bi * c + ci) * ty + yi) * tx + xi) * (tile * tile))[:, None] + lane
         depth.scatter_reduce_(0, pixel.reshape(-1), t.reshape(-1), "amin")
         if want_which:
             key.scatter_reduce_(0, pixel.reshape(-1), _pack(t, geom[:, None]).reshape(-1), "amin")
