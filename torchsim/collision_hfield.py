@@ -26,13 +26,17 @@ deepest contacts are kept in a fixed number of slots (``POINTS_PER_PAIR``, ``tor
 - cylinder: its 8 cap rim points at quarter turns from the lowest in the field's frame (as on a plane), the
   deepest triangle of each, its support point along each triangle's inward normal (the 2 deepest) and the 2
   deepest grid vertices inside it (12).
-Meshes against height fields are refused by the loader. Edges of the terrain crossing a box, ellipsoid or
-cylinder between grid vertices (a sharp ridge under a flat face) are missed; ``tests/test_hfield.py`` measures the
-contacts against MuJoCo's.
+A sphere across a cell edge or vertex gets one contact per triangle it overlaps, as MuJoCo's prisms do (their
+normals tilt towards the shared edge; the 4 deepest are kept). Meshes against height fields are refused by the
+loader. Edges of the terrain crossing a box, ellipsoid or cylinder between grid vertices (a sharp ridge under a
+flat face) are missed; ``tests/test_hfield.py`` measures the contacts against MuJoCo's.
 
-Work is static and branch-free (``torch.where``); the window's elevations are gathered from the field by index,
-which the step kernel's row graphs cannot express: the kernel refuses models with height fields (they run on
-``loop``).
+Cost: every candidate point meets every triangle of its window (``P x points x 2 Wy Wx x B``): eager, dm_control's
+quadruped at 256 envs spends 50 ms of its 67 ms of contacts on its 20 height-field pairs, 43 ms on the 12 capsules'
+(5 points x 18 triangles each; 2-core CPU, float32). Work is static and branch-free (``torch.where``); the window's
+elevations are gathered from the field by index, which the step kernel's row graphs cannot express: the kernel
+refuses models with height fields (they run on ``loop``: a sphere on a field compiled in 72 s and stepped as the
+eager step to 5e-11 m).
 """
 
 import torch
