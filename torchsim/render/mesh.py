@@ -42,11 +42,12 @@ class Meshes(NamedTuple):
     more, index ``Nt``: the degenerate padding triangle).
 
     Attributes:
-        node_lo, node_hi: (Nn, 3) box corners in the mesh (geom) frame; NaN for empty nodes.
+        node_box: (6, Nn) box corners (low x, y, z, high x, y, z: component-major, so that a gather gives
+            contiguous rows) in the mesh (geom) frame; NaN for empty nodes.
         node_left: (Nn,) global index of the left child (the right one follows it); -1 at leaves.
         node_leaf: (Nn,) leaf row into ``leaf_tri`` (-1 for inner nodes).
         leaf_tri: (Nl, LEAF) triangle indices per leaf (``Nt``: padding).
-        v0, e1, e2: (Nt + 1, 3) each triangle's first vertex and its two edges from it.
+        tri: (9, Nt + 1) each triangle's first vertex and its two edges from it (component-major).
         normal: (Nt + 1, 3) unit face normals (right-handed from the face's vertex order: outward for MuJoCo meshes).
         root: (Mr,) global node index of each mesh's root.  start: (Mr,) level at which its traversal starts.
         depth: the deepest tree's depth (every traversal ends at level ``depth``).
@@ -55,14 +56,11 @@ class Meshes(NamedTuple):
         names: mesh asset names.
     """
 
-    node_lo: torch.Tensor
-    node_hi: torch.Tensor
+    node_box: torch.Tensor
     node_left: torch.Tensor
     node_leaf: torch.Tensor
     leaf_tri: torch.Tensor
-    v0: torch.Tensor
-    e1: torch.Tensor
-    e2: torch.Tensor
+    tri: torch.Tensor
     normal: torch.Tensor
     root: torch.Tensor
     start: torch.Tensor
@@ -130,9 +128,9 @@ def build(model, mesh_ids) -> Meshes:
         vert_range.append((va, len(v)))
         face_range.append((fa, len(f)))
         va, fa = va + len(v), fa + len(f)
-    return Meshes(node_lo=f64(cat(lo, (0, 3))), node_hi=f64(cat(hi, (0, 3))), node_left=i64(cat(left, (0,))),
-                  node_leaf=i64(cat(leaf, (0,))), leaf_tri=i64(leaf_tri), v0=f64(tri[:, 0]), e1=f64(e1), e2=f64(e2),
-                  normal=f64(n), root=i64(root), start=i64(start), depth=int(depth), vert=f64(cat(verts, (0, 3))),
+    box = np.concatenate((cat(lo, (0, 3)), cat(hi, (0, 3))), 1).T
+    return Meshes(node_box=f64(box), node_left=i64(cat(left, (0,))), node_leaf=i64(cat(leaf, (0,))),
+                  leaf_tri=i64(leaf_tri), tri=f64(np.concatenate((tri[:, 0], e1, e2), 1).T), normal=f64(n), root=i64(root), start=i64(start), depth=int(depth), vert=f64(cat(verts, (0, 3))),
                   face=i64(cat(faces, (0, 3))), vert_range=tuple(vert_range), face_range=tuple(face_range),
                   names=tuple(names))
 
@@ -198,8 +196,7 @@ def cast(meshes: Meshes, mesh: torch.Tensor, o: torch.Tensor, d: torch.Tensor, z
                       zfar, want_tri, None if limit is None else limit[s:s + RAYS_PER_CHUNK])
                  for s in range(0, count, RAYS_PER_CHUNK)]
         return torch.cat([p[0] for p in parts]), (torch.cat([p[1] for p in parts]) if want_tri else None)
-    inv = 1.0 / _safe(d)
-    lo, hi = meshes.node_lo, meshes.node_hi
+    rays = torch.cat((o, d, 1.0 / _safe(d)), 1).T.contiguous()  # (9, R): origin, direction, inverse
     first = meshes.start.index_select(0, mesh)
     ray = o.new_zeros(0, dtype=torch.long)
     node = ray
@@ -210,11 +207,8 @@ def cast(meshes: Meshes, mesh: torch.Tensor, o: torch.Tensor, d: torch.Tensor, z
             node = torch.cat((node, meshes.root.index_select(0, mesh.index_select(0, new))))
         if ray.numel() == 0:
             continue
-        oo, ii = o.index_select(0, ray), inv.index_select(0, ray)
-        t1 = (lo.index_select(0, node) - oo).mul_(ii)  # the slabs' two planes
-        t2 = (hi.index_select(0, node) - oo).mul_(ii)
-        near = torch.minimum(t1, t2).amax(1)  # NaN (an empty node) propagates and fails the test
-        far = torch.maximum(t1, t2).amin(1)
+        near, far = _slabs(rays[:3].index_select(1, ray), rays[6:].index_select(1, ray),
+                           meshes.node_box.index_select(1, node))
         ok = (near <= far) & (far > znear) & (near < zfar)
         if limit is not None:  # a tie with the known surface is kept: segmentation breaks ties by geom
             ok &= near <= limit.index_select(0, ray)
@@ -230,21 +224,33 @@ def cast(meshes: Meshes, mesh: torch.Tensor, o: torch.Tensor, d: torch.Tensor, z
         # before the nearest hit found so far (a ray that hits the front of a mesh skips the leaves behind)
         nearest = torch.full_like(t, float("inf")).scatter_reduce_(0, ray, near, "amin")
         first = near <= nearest.index_select(0, ray)
-        _leaves(meshes, ray[first], node[first], o, d, znear, zfar, t, keys)
+        _leaves(meshes, ray[first], node[first], rays, znear, zfar, t, keys)
         bound = t if limit is None else torch.minimum(t, limit)
         rest = (~first & (near <= bound.index_select(0, ray))).nonzero().squeeze(1)
-        _leaves(meshes, ray.index_select(0, rest), node.index_select(0, rest), o, d, znear, zfar, t, keys)
+        _leaves(meshes, ray.index_select(0, rest), node.index_select(0, rest), rays, znear, zfar, t, keys)
     tri_hit = torch.where(torch.isfinite(t), keys & 0xFFFFFFFF, -1) if want_tri else None
     return t, tri_hit
 
 
-def _leaves(meshes, ray, node, o, d, znear, zfar, t, keys):
+def _slabs(o, inv, box):
+    """Entry and exit parameters ``(P,)`` of rays ``o``, ``inv`` (origins and inverse directions, ``(3, P)``) through
+    boxes ``box (6, P)``; an empty node's NaN propagates (``torch.maximum``/``minimum``) and fails any test."""
+    near = far = None
+    for k in range(3):
+        t1, t2 = (box[k] - o[k]) * inv[k], (box[3 + k] - o[k]) * inv[k]
+        lo, hi = torch.minimum(t1, t2), torch.maximum(t1, t2)
+        near = lo if near is None else torch.maximum(near, lo)
+        far = hi if far is None else torch.minimum(far, hi)
+    return near, far
+
+
+def _leaves(meshes, ray, node, rays, znear, zfar, t, keys):
     """Test the triangles of leaves ``node`` against rays ``ray``, lowering the rays' nearest hits ``t`` (and
     their keys: float32 depth bits above the triangle index, where ``keys`` is given) in place."""
     if ray.numel() == 0:
         return
     tri = meshes.leaf_tri.index_select(0, meshes.node_leaf.index_select(0, node))  # (P, LEAF)
-    th = _triangles(meshes, tri, o.index_select(0, ray)[:, None], d.index_select(0, ray)[:, None], znear, zfar)
+    th = _triangles(meshes, tri, rays[:6].index_select(1, ray)[:, :, None], znear, zfar)
     best, slot = th.min(1)
     t.scatter_reduce_(0, ray, best, "amin")
     if keys is not None:
@@ -252,19 +258,19 @@ def _leaves(meshes, ray, node, o, d, znear, zfar, t, keys):
         keys.scatter_reduce_(0, ray, key, "amin")
 
 
-def _triangles(meshes, tri, o, d, znear, zfar):
-    """Möller-Trumbore, both faces: ray parameters ``(P, S)`` of rays ``o``, ``d`` ``(P, 1, 3)`` against
-    triangles ``tri (P, S)`` (inf: a miss)."""
-    index = tri.reshape(-1)
-    v0, e1, e2 = (x.index_select(0, index).view(*tri.shape, 3) for x in (meshes.v0, meshes.e1, meshes.e2))
-    p = torch.linalg.cross(d.expand_as(e2), e2)
-    det = (e1 * p).sum(-1)
+def _triangles(meshes, tri, ray, znear, zfar):
+    """Möller-Trumbore, both faces: ray parameters ``(P, S)`` of rays ``ray (6, P, 1)`` (origin, direction)
+    against triangles ``tri (P, S)`` (inf: a miss); component by component, on contiguous ``(P, S)`` rows."""
+    v0x, v0y, v0z, e1x, e1y, e1z, e2x, e2y, e2z = meshes.tri.index_select(1, tri.reshape(-1)).view(9, *tri.shape)
+    ox, oy, oz, dx, dy, dz = ray
+    px, py, pz = dy * e2z - dz * e2y, dz * e2x - dx * e2z, dx * e2y - dy * e2x
+    det = e1x * px + e1y * py + e1z * pz
     inv = 1.0 / det  # a degenerate (padding) triangle: inf, and NaNs below, which fail every test
-    s = o - v0
-    u = (s * p).sum(-1) * inv
-    q = torch.linalg.cross(s, e1)
-    v = (d * q).sum(-1) * inv
-    t = (e2 * q).sum(-1) * inv
+    sx, sy, sz = ox - v0x, oy - v0y, oz - v0z
+    u = (sx * px + sy * py + sz * pz) * inv
+    qx, qy, qz = sy * e1z - sz * e1y, sz * e1x - sx * e1z, sx * e1y - sy * e1x
+    v = (dx * qx + dy * qy + dz * qz) * inv
+    t = (e2x * qx + e2y * qy + e2z * qz) * inv
     ok = (det != 0) & (u >= -EDGE_SLACK) & (v >= -EDGE_SLACK) & (u + v <= 1 + EDGE_SLACK) & (t > znear) & (t < zfar)
     return torch.where(ok, t, float("inf"))
 
