@@ -33,6 +33,8 @@ LEAF = 4
 #: Rays traversed together (bounds the pair lists, which stay in cache: measured on the Panda, 2^15 rays per chunk
 #: ran 1.6x faster than 2^18).
 RAYS_PER_CHUNK = 1 << 15
+#: Relative slack of ``cast(at=)``'s known hit parameters.
+AT_SLACK = 1e-4
 #: Barycentric slack of the triangle test, so that rays through a shared edge do not slip between its triangles.
 EDGE_SLACK = 1e-6
 
@@ -185,15 +187,17 @@ def _safe(x):
 
 
 def cast(meshes: Meshes, mesh: torch.Tensor, o: torch.Tensor, d: torch.Tensor, znear, zfar,
-         want_tri: bool = False, limit: torch.Tensor | None = None):
+         want_tri: bool = False, limit: torch.Tensor | None = None, at: torch.Tensor | None = None):
     """Nearest hits of rays ``o + t d`` (``o``, ``d``: (R, 3), in the frame of mesh ``mesh (R,)``) with
     ``znear < t < zfar``: ``t (R,)`` (inf: none) and, if asked, the triangle hit ``(R,)`` (into ``meshes.normal``;
     -1: none). ``limit (R,)``: where given, each ray's hits beyond it are not needed (a nearer surface is known:
-    boxes entered after it are skipped, and ``t`` may then be anything above it)."""
+    boxes entered after it are skipped, and ``t`` may then be anything above it). ``at (R,)``: where given, the
+    hits are known to lie at these ray parameters (to ``AT_SLACK``, relative; e.g. the depth the pixel was drawn
+    at), and only the boxes around those points are visited (to find the triangle of a hit cheaply)."""
     count = o.shape[0]
     if count > RAYS_PER_CHUNK:
         parts = [cast(meshes, mesh[s:s + RAYS_PER_CHUNK], o[s:s + RAYS_PER_CHUNK], d[s:s + RAYS_PER_CHUNK], znear,
-                      zfar, want_tri, None if limit is None else limit[s:s + RAYS_PER_CHUNK])
+                      zfar, want_tri, *(None if x is None else x[s:s + RAYS_PER_CHUNK] for x in (limit, at)))
                  for s in range(0, count, RAYS_PER_CHUNK)]
         return torch.cat([p[0] for p in parts]), (torch.cat([p[1] for p in parts]) if want_tri else None)
     rays = torch.cat((o, d, 1.0 / _safe(d)), 1).T.contiguous()  # (9, R): origin, direction, inverse
@@ -212,6 +216,9 @@ def cast(meshes: Meshes, mesh: torch.Tensor, o: torch.Tensor, d: torch.Tensor, z
         ok = (near <= far) & (far > znear) & (near < zfar)
         if limit is not None:  # a tie with the known surface is kept: segmentation breaks ties by geom
             ok &= near <= limit.index_select(0, ray)
+        if at is not None:
+            point = at.index_select(0, ray)
+            ok &= (near <= point * (1 + AT_SLACK)) & (far >= point * (1 - AT_SLACK))
         keep = ok.nonzero().squeeze(1)
         ray, node, near = ray.index_select(0, keep), node.index_select(0, keep), near.index_select(0, keep)
         if level < meshes.depth:

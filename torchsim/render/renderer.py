@@ -131,7 +131,7 @@ def _shade(scene, axes, origin, depth, which, xs, ys, shading, ambient, diffuse,
         size = scene.geom_size[k].unbind(-1)
         n = raycast.normal(codes, p, size, kinds=[kind for kind, _ in scene.groups if kind in raycast.CODE])
         if scene.meshes is not None:
-            n = _mesh_normals(scene, k, hit, o, d, n)
+            n = _mesh_normals(scene, k, hit, o, d, t, n)
         n_cam = tuple(e[i][..., 0] * n[0] + e[i][..., 1] * n[1] + e[i][..., 2] * n[2] for i in range(3))
         dot = n_cam[0] * x + n_cam[1] * y - n_cam[2]
         norms = (n_cam[0] ** 2 + n_cam[1] ** 2 + n_cam[2] ** 2) * (x * x + y * y + 1)
@@ -141,15 +141,17 @@ def _shade(scene, axes, origin, depth, which, xs, ys, shading, ambient, diffuse,
     return torch.where(hit[..., None], colour.clamp(0, 1), back)
 
 
-def _mesh_normals(scene, k, hit, o, d, n):
+def _mesh_normals(scene, k, hit, o, d, t, n):
     """``n`` with the face normals of the mesh triangles seen by the pixels that see a mesh geom: their rays
-    (``o``, ``d``: geom frame) are cast again through their geom's BVH, this time asking for the triangle."""
+    (``o``, ``d``: geom frame) are cast again through their geom's BVH, visiting only the boxes around the hit at
+    depth ``t``, this time asking for the triangle."""
     which = scene.geom_mesh[k]
     index = (hit & (which >= 0)).reshape(-1).nonzero().squeeze(1)
     if index.numel() == 0:
         return n
     o, d = (torch.stack(torch.broadcast_tensors(*v), -1).reshape(-1, 3)[index] for v in (o, d))
-    _, tri = mesh.cast(scene.meshes, which.reshape(-1)[index], o, d, scene.znear, scene.zfar, want_tri=True)
+    _, tri = mesh.cast(scene.meshes, which.reshape(-1)[index], o, d, scene.znear, scene.zfar, want_tri=True,
+                       at=t.reshape(-1)[index])
     face = scene.meshes.normal[tri.clamp_min(0)]
     return tuple(ni.reshape(-1).index_put((index,), face[:, j]).view(ni.shape)
                  for j, ni in enumerate(torch.broadcast_tensors(*n)))
