@@ -34,10 +34,10 @@ flat face) are missed; ``tests/test_hfield.py`` measures the contacts against Mu
 Cost: every candidate point meets every triangle of its window (``P x points x 2 Wy Wx x B``), ranked by scalar
 distances alone (:func:`_distances`); only the kept ones get a point and normal. Eager, dm_control's quadruped at
 256 envs spends about 28 ms of its 42 ms of contacts on its 20 height-field pairs, 18 ms on the 12 capsules' (5
-points x 18 triangles each; 2-core shared CPU, float32, noisy; 50 of 67 ms before the ranking pass). Work is static and branch-free (``torch.where``); the window's
-elevations are gathered from the field by index, which the step kernel's row graphs cannot express: the kernel
-refuses models with height fields (they run on ``loop``: a sphere on a field compiled in 72 s and stepped as the
-eager step to 5e-11 m).
+points x 18 triangles each; 2-core shared CPU, float32, noisy; 50 of 67 ms before the ranking pass). Work is static
+and branch-free (``torch.where``); the window's elevations are gathered from the field by index, which the step
+kernel's row graphs cannot express: the kernel refuses models with height fields (they run on ``loop``: a sphere on
+a field compiled in 72-82 s and stepped as the eager step to 5e-11 m).
 """
 
 import torch
