@@ -286,9 +286,9 @@ def video(env: TransformedEnv, env_name: str, trajectory, path: pathlib.Path) ->
 def render_gif(env_name: str, qpos: np.ndarray, dt: float, path: pathlib.Path, renderer: str = "torchsim",
                width: int = 320, height: int = 240) -> None:
     """Write a ``width`` x ``height`` GIF of ``qpos``. ``renderer="torchsim"`` (default): torchsim's own renderer,
-    in this process (no GL context; ``torchsim.envs.video.render_frames_torchsim``); models it cannot draw (meshes)
-    fall back to ``"mujoco"``: MuJoCo's renderer in a child process, as MuJoCo picks its GL backend when first imported
-    (``MUJOCO_GL``), which in this process happened before we could choose EGL."""
+    in this process (no GL context; ``torchsim.envs.video.render_frames_torchsim``); models it cannot draw (height
+    fields) fall back to ``"mujoco"``: MuJoCo's renderer in a child process, as MuJoCo picks its GL backend when first
+    imported (``MUJOCO_GL``), which in this process happened before we could choose EGL."""
     path = pathlib.Path(path)
     if renderer == "torchsim":
         from torchsim.envs.video import render_frames_torchsim, save_gif

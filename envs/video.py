@@ -108,7 +108,7 @@ def render_frames_torchsim(model: mujoco.MjModel, system, qpos: np.ndarray, widt
         compile: ``torch.compile`` the hit tests (:func:`torchsim.render.render`; a few seconds of compilation per
             shape type on first use in a machine, cached on disk by inductor).
 
-    Raises :class:`torchsim.render.UnsupportedGeomError` for models with meshes or height fields.
+    Raises :class:`torchsim.render.UnsupportedGeomError` for models with height fields (meshes are drawn).
     """
     from torchsim.render import Scene, render
     from torchsim.render.viewer import trajectory

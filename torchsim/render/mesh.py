@@ -16,9 +16,17 @@ later, so that every traversal reaches its leaves at the same, last, level.
 The traversal (:func:`cast`) is a wavefront: it keeps a list of (ray, node) pairs; at each level every pair's box
 is slab-tested at once, the misses are dropped (``nonzero``) and the hits replaced by their two children; at the last
 level the surviving leaves' triangles are tested (Möller-Trumbore, both faces, batched over pairs and the leaf's
-slots) and the nearest hit of each ray is taken with a scatter-min. There is no per-ray branch and the number of
-iterations is the tree's depth (plus one); the work is proportional to the boxes a ray crosses, not to the mesh's
-triangles. Rays are processed in chunks (``RAYS_PER_CHUNK``) so that memory stays bounded.
+slots), each ray's nearest-entered leaf first and then only the leaves entered before the nearest hit so far, and
+the nearest hit of each ray is taken with a scatter-min. There is no per-ray branch and the number of iterations
+is the tree's depth (plus one); the work is proportional to the boxes a ray crosses, not to the mesh's triangles.
+Node and triangle tables are component-major (``(6, nodes)``, ``(9, triangles)``): a gather gives contiguous rows,
+and the tests run component by component (measured 1.4x faster than gathering ``(P, 3)`` rows and using
+``cross``/``sum``). Rays are processed in chunks (``RAYS_PER_CHUNK``) so that memory stays bounded.
+
+Measured alternatives, no faster on robosuite's Panda (64x48, 1 CPU thread): casting a robot's mesh rows in
+depth-sorted batches so that hidden parts are skipped (20% fewer leaf tests, the same time), a greedy first descent
+per ray for an early bound (slower), testing both children of a pair in one gather (slower: broadcasting), 2 or 8
+triangles per leaf.
 """
 
 from typing import NamedTuple
