@@ -86,8 +86,10 @@ class Meshes(NamedTuple):
         return len(self.names)
 
     def to(self, device=None, dtype=None) -> "Meshes":
+        """The traversal's tables on ``device`` in ``dtype`` (``vert``/``face``, the viewer's, stay as they are)."""
         return Meshes(*(x.to(device=device, dtype=dtype if x.is_floating_point() else None)
-                        if isinstance(x, torch.Tensor) else x for x in self))
+                        if isinstance(x, torch.Tensor) and name not in ("vert", "face") else x
+                        for name, x in zip(self._fields, self)))
 
     def geometry(self, k: int) -> tuple[np.ndarray, np.ndarray]:
         """Vertices ``(V, 3)`` (float64, mesh frame = geom frame) and triangles ``(F, 3)`` of mesh ``k``."""
