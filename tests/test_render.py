@@ -301,15 +301,19 @@ def shapes_scene(**kw):
 
 
 def test_unsupported_geom_is_named():
-    """A height field (not drawn; ``torchsim.load_mjcf`` refuses them too, so the scene is built from the model with
-    one added to the world against the system without it: same bodies)."""
-    xml = SHAPES_XML.replace("<asset>", '<asset><hfield name="h" nrow="3" ncol="3" size="1 1 0.1 0.1"/>').replace(
-        "<worldbody>", '<worldbody><geom name="ground" type="hfield" hfield="h" pos="0 0 -3"/>')
+    """A signed-distance-field geom (MuJoCo's torus plugin; not drawn; ``torchsim.load_mjcf`` does not load it, so
+    the scene is built from the model with one added to the world against the system without it: same bodies)."""
+    torus = ('<extension><plugin plugin="mujoco.sdf.torus"><instance name="torus"><config key="radius1" value="0.35"/>'
+             '<config key="radius2" value="0.15"/></instance></plugin></extension>')
+    xml = SHAPES_XML.replace("<mujoco>", "<mujoco>" + torus).replace(
+        "<asset>", '<asset><mesh name="torus"><plugin instance="torus"/></mesh>').replace(
+        "<worldbody>", '<worldbody><geom name="ring" type="sdf" mesh="torus" pos="0 0 -3"><plugin instance="torus"/>'
+        '</geom>')
     system = torchsim.load_mjcf(SHAPES_XML)
-    with pytest.raises(UnsupportedGeomError, match="'ground'.*HFIELD"):
+    with pytest.raises(UnsupportedGeomError, match="'ring'.*SDF"):
         Scene.build(mujoco.MjModel.from_xml_string(xml), system)
     scene = Scene.build(mujoco.MjModel.from_xml_string(xml), system, skip_unsupported=True)
-    assert scene.skipped == ("ground",) and "mesh" in scene.geom_type  # the tetrahedron is drawn
+    assert scene.skipped == ("ring",) and "mesh" in scene.geom_type  # the tetrahedron is drawn
 
 
 def test_closed_form_depths():

@@ -48,7 +48,7 @@ EDGE_SLACK = 1e-6
 
 
 class Meshes(NamedTuple):
-    """The BVHs of a scene's ``Mr`` mesh assets, flattened: ``Nn`` nodes, ``Nl`` leaves, ``Nt`` triangles (one
+    """The BVHs of a scene's ``Mr`` mesh assets (and triangulated height fields), flattened: ``Nn`` nodes, ``Nl`` leaves, ``Nt`` triangles (one
     more, index ``Nt``: the degenerate padding triangle).
 
     Attributes:
@@ -63,7 +63,7 @@ class Meshes(NamedTuple):
         depth: the deepest tree's depth (every traversal ends at level ``depth``).
         vert, face: (V, 3), (F, 3) the meshes' vertices and triangles as MuJoCo stores them (faces index into the
             mesh's own vertices), for the viewer; ``vert_range``, ``face_range``: ``(start, count)`` per mesh.
-        names: mesh asset names.
+        names: mesh asset names (``hfield:<name>`` for a height field).
     """
 
     node_box: torch.Tensor
@@ -100,16 +100,28 @@ class Meshes(NamedTuple):
 
 def build(model, mesh_ids) -> Meshes:
     """The BVHs of MuJoCo meshes ``mesh_ids`` (indices into ``model.mesh_*``) of a ``mujoco.MjModel``, in order."""
+    return build_from([mesh_geometry(model, k) for k in mesh_ids])
+
+
+def mesh_geometry(model, k: int) -> tuple[str, np.ndarray, np.ndarray]:
+    """Name, vertices ``(V, 3)`` (float64) and triangles ``(F, 3)`` of MuJoCo mesh ``k``, as MuJoCo stores them."""
+    va, vn = int(model.mesh_vertadr[k]), int(model.mesh_vertnum[k])
+    fa, fn = int(model.mesh_faceadr[k]), int(model.mesh_facenum[k])
+    return (mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_MESH, int(k)) or f"mesh{k}",
+            np.asarray(model.mesh_vert[va:va + vn], dtype=np.float64),
+            np.asarray(model.mesh_face[fa:fa + fn], dtype=np.int64))
+
+
+def build_from(geometries) -> Meshes:
+    """The BVHs of triangle meshes ``geometries``: ``(name, vertices (V, 3), triangles (F, 3))`` each, in order
+    (MuJoCo meshes, :func:`mesh_geometry`; triangulated height fields, :mod:`torchsim.render.hfield`)."""
     trees, verts, faces, names = [], [], [], []
-    for k in mesh_ids:
-        va, vn = int(model.mesh_vertadr[k]), int(model.mesh_vertnum[k])
-        fa, fn = int(model.mesh_faceadr[k]), int(model.mesh_facenum[k])
-        vert = np.asarray(model.mesh_vert[va:va + vn], dtype=np.float64)
-        face = np.asarray(model.mesh_face[fa:fa + fn], dtype=np.int64)
+    for name, vert, face in geometries:
+        vert, face = np.asarray(vert, dtype=np.float64), np.asarray(face, dtype=np.int64)
         verts.append(vert)
         faces.append(face)
         trees.append(_tree(vert[face]))
-        names.append(mujoco.mj_id2name(model, mujoco.mjtObj.mjOBJ_MESH, int(k)) or f"mesh{k}")
+        names.append(name)
     depth = max((t[0] for t in trees), default=0)
     lo, hi, left, leaf, leaf_tri, tris, root, start = [], [], [], [], [], [], [], []
     nodes = leaves = ntri = 0
@@ -311,4 +323,4 @@ def bounding_radius(meshes: Meshes, k: int) -> float:
     return float(np.linalg.norm(vert, axis=1).max(initial=0.0))
 
 
-__all__ = ["LEAF", "Meshes", "build", "cast", "rows", "bounding_radius"]
+__all__ = ["LEAF", "Meshes", "build", "build_from", "mesh_geometry", "cast", "rows", "bounding_radius"]

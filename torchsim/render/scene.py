@@ -10,7 +10,8 @@ Geoms are taken from the ``mujoco.MjModel`` rather than from the ``System``, so 
 through ``System.mjbody_*``. Visibility follows what ``mujoco.Renderer`` shows with its default options: geom groups
 0-2, and geoms whose colour (``rgba``, or the material's where the geom's ``rgba`` is MuJoCo's default) is not fully
 transparent. Mesh geoms are drawn as their triangle meshes, through a bounding-volume hierarchy per mesh asset built
-here (:mod:`torchsim.render.mesh`).
+here (:mod:`torchsim.render.mesh`); height fields are triangulated here as MuJoCo's renderer draws them (surface,
+side walls and bottom: :mod:`torchsim.render.hfield`) and drawn the same way.
 """
 
 import dataclasses
@@ -22,6 +23,7 @@ import torch
 from torchsim.render.camera import Camera, cameras_from_model
 from torchsim.render.frames import quat_to_mat_np
 from torchsim.render.mesh import Meshes
+from torchsim.render import hfield as hfield_mesh
 from torchsim.render import mesh as mesh_bvh
 
 #: Geom types the renderer intersects in closed form, by MuJoCo ``mjtGeom`` value.
@@ -32,12 +34,16 @@ SHAPES = {
 }
 #: Mesh geoms: triangle meshes (:mod:`torchsim.render.mesh`), drawn besides the closed-form shapes.
 MESH = int(mujoco.mjtGeom.mjGEOM_MESH)
+#: Height-field geoms: triangulated at scene build (:mod:`torchsim.render.hfield`) and drawn as meshes.
+HFIELD = int(mujoco.mjtGeom.mjGEOM_HFIELD)
+#: Geom types drawn through a BVH of triangles (the ``"mesh"`` group of ``Scene.groups``).
+TRIANGLES = ("mesh", "hfield")
 #: MuJoCo's default geom colour: a geom with a material and this rgba shows the material's colour.
 DEFAULT_RGBA = np.array([0.5, 0.5, 0.5, 1.0])
 
 
 class UnsupportedGeomError(ValueError):
-    """A visible geom has a type the renderer cannot intersect (hfield, sdf, ...)."""
+    """A visible geom has a type the renderer cannot intersect (sdf)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -47,23 +53,23 @@ class Scene:
 
     Attributes:
         geom_id: (G,) MuJoCo geom id of each rendered geom (what segmentation images hold).
-        geom_type: (G,) shape names (``SHAPES`` values, or ``"mesh"``).
+        geom_type: (G,) shape names (``SHAPES`` values, ``"mesh"`` or ``"hfield"``).
         geom_body: (G,) ext index of the torchsim body carrying the geom.
         geom_pos, geom_rot: (G, 3), (G, 3, 3) the geom's frame in its body's frame (the body COM frame of
             ``State.x_pos``/``x_quat``; the world frame for static geoms).
         geom_size: (G, 3) MuJoCo sizes.  geom_rgba: (G, 4) colour as MuJoCo's renderer uses it.
         geom_radius: (G,) radius of a sphere about the geom's centre that holds it (inf: infinite planes).
-        geom_mesh: (G,) index into ``meshes`` of each mesh geom's mesh (-1: not a mesh).
-        meshes: the BVHs of the mesh assets the rendered mesh geoms use (:class:`torchsim.render.mesh.Meshes`;
-            None without mesh geoms).
-        groups: ``(shape name, (g,) positions into the G geoms)`` per shape type present.
+        geom_mesh: (G,) index into ``meshes`` of each mesh or hfield geom's triangles (-1: neither).
+        meshes: the BVHs of the mesh assets and triangulated height fields the rendered geoms use
+            (:class:`torchsim.render.mesh.Meshes`; None without mesh or hfield geoms).
+        groups: ``(shape name, (g,) positions into the G geoms)`` per shape type present (mesh and hfield geoms
+            together in ``"mesh"``: both are cast through their BVH).
         cameras: the model's ``<camera>`` elements (:class:`Camera`; may be empty).
         znear, zfar: clip distances [m], MuJoCo's ``vis.map.znear/zfar`` times ``stat.extent``; nothing nearer or
             farther is drawn, and empty pixels have depth ``zfar`` (as MuJoCo's depth buffer).
         num_bodies: ``N``.  mjbody_body: (M,) ext index of each MuJoCo body's torchsim body; mjbody_pos,
             mjbody_rot: (M, 3), (M, 3, 3) the MuJoCo body's frame in it.  mjbody_names: (M,) names.
-        skipped: names of geoms left out because their type is unsupported (``skip_unsupported=True``: height
-            fields, SDFs).
+        skipped: names of geoms left out because their type is unsupported (``skip_unsupported=True``: SDFs).
         unsupported_cameras: ``(name, reason)`` of model cameras left out of ``cameras`` (modes other than fixed
             and track, orthographic or intrinsics cameras); selecting one by name raises with the reason.
     """
@@ -97,10 +103,12 @@ class Scene:
 
         Args:
             geom_groups: geom groups drawn (MuJoCo's renderer default: 0, 1, 2).
-            skip_unsupported: leave out visible geoms of unsupported types (hfield, sdf): they are then
-                invisible in every image. Default: raise :class:`UnsupportedGeomError` naming the geom and type.
+            skip_unsupported: leave out visible geoms of unsupported types (sdf): they are then invisible in every
+                image. Default: raise :class:`UnsupportedGeomError` naming the geom and type.
 
         Mesh geoms are drawn; their BVHs are built here, once (robosuite's Panda, 50 meshes, 0.13 M triangles: ~0.5 s).
+        Height fields are triangulated here, once, from the System's ``hfield_height`` (what it collides; MuJoCo's
+        ``hfield_data`` where the System has none): a terrain changed later needs a new Scene.
         """
         m = _model(model)
         nbody = int(system.mjbody_body.shape[0])
@@ -116,7 +124,9 @@ class Scene:
                 rgba = m.mat_rgba[m.geom_matid[g]].astype(np.float64)
             if m.geom_group[g] not in geom_groups or rgba[3] == 0:
                 continue
-            kind = "mesh" if int(m.geom_type[g]) == MESH and m.geom_dataid[g] >= 0 else SHAPES.get(int(m.geom_type[g]))
+            kind = SHAPES.get(int(m.geom_type[g]))
+            if int(m.geom_type[g]) in (MESH, HFIELD) and m.geom_dataid[g] >= 0:
+                kind = "mesh" if int(m.geom_type[g]) == MESH else "hfield"
             if kind is None:
                 label = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_GEOM, g) or f"#{g}"
                 if skip_unsupported:
@@ -124,7 +134,7 @@ class Scene:
                     continue
                 raise UnsupportedGeomError(
                     f"geom {label!r} has type {mujoco.mjtGeom(m.geom_type[g]).name}, which the renderer cannot "
-                    "draw (supported: plane, sphere, capsule, ellipsoid, cylinder, box, mesh); pass "
+                    "draw (supported: plane, sphere, capsule, ellipsoid, cylinder, box, mesh, hfield); pass "
                     "skip_unsupported=True to leave such geoms out (they are then invisible)")
             b = m.geom_bodyid[g]
             pos = mj_pos[b] + mj_rot[b] @ m.geom_pos[g]
@@ -132,11 +142,12 @@ class Scene:
             rows.append((g, kind, mj_body[b], pos, rot, m.geom_size[g].astype(np.float64), rgba))
         cameras, refused = cameras_from_model(m, mj_body, mj_pos, mj_rot)
         kinds = tuple(r[1] for r in rows)
-        groups = tuple((k, torch.as_tensor([i for i, t in enumerate(kinds) if t == k], dtype=torch.long))
-                       for k in (*SHAPES.values(), "mesh") if k in kinds)
-        assets = sorted({int(m.geom_dataid[r[0]]) for r in rows if r[1] == "mesh"})
-        meshes = mesh_bvh.build(m, assets) if assets else None
-        geom_mesh = [assets.index(int(m.geom_dataid[r[0]])) if r[1] == "mesh" else -1 for r in rows]
+        cast = tuple("mesh" if k in TRIANGLES else k for k in kinds)  # mesh and hfield geoms: one BVH group
+        groups = tuple((k, torch.as_tensor([i for i, t in enumerate(cast) if t == k], dtype=torch.long))
+                       for k in (*SHAPES.values(), "mesh") if k in cast)
+        assets = sorted({(r[1], int(m.geom_dataid[r[0]])) for r in rows if r[1] in TRIANGLES})
+        meshes = mesh_bvh.build_from([_triangles(m, system, kind, k) for kind, k in assets]) if assets else None
+        geom_mesh = [assets.index((r[1], int(m.geom_dataid[r[0]]))) if r[1] in TRIANGLES else -1 for r in rows]
         radius = [mesh_bvh.bounding_radius(meshes, k) if k >= 0 else bounding_radius(r[1], r[5])
                   for r, k in zip(rows, geom_mesh)]
         as_f = lambda i, shape: torch.as_tensor(np.array([r[i] for r in rows], dtype=np.float64).reshape(shape))
@@ -196,6 +207,14 @@ def bounding_radius(kind: str, size) -> float:
     radius = {"sphere": size[0], "capsule": size[0] + size[1], "cylinder": np.hypot(size[0], size[1]),
               "ellipsoid": max(size), "box": np.linalg.norm(size)}[kind]
     return float(radius)
+
+
+def _triangles(m, system, kind: str, k: int):
+    """``(name, vertices, triangles)`` of mesh asset ``k`` or of height field ``k``, triangulated."""
+    if kind == "mesh":
+        return mesh_bvh.mesh_geometry(m, k)
+    name = mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_HFIELD, k) or f"{k}"
+    return (f"hfield:{name}", *hfield_mesh.triangulate(hfield_mesh.elevation(m, k, system), m.hfield_size[k]))
 
 
 def _model(model) -> mujoco.MjModel:

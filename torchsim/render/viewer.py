@@ -7,12 +7,13 @@
     viewer.update(env.state)               # pose the bodies as in env 0 of the state (call it every step)
     save_html(scene, (x_pos, x_quat), "rollout.html", dt=env.dt)   # one self-contained file (~1 MB + poses)
 
-Each geom of the :class:`~torchsim.render.Scene` (plane, sphere, capsule, ellipsoid, cylinder, box, and mesh geoms
-with their own triangles) becomes a mesh in its colour, a child of its torchsim body's frame; per update only the bodies' frames move
-(``State.x_pos`` / ``x_quat``, as :func:`torchsim.render.render` reads them). :func:`save_html` records a
-trajectory into a single HTML file holding viser's client and the recording (playback bar, orbit camera) that
-opens in a browser from disk, with neither torchsim nor Python installed. ``pip install -e '.[viewer]'``
-installs viser; ``scripts/view.py`` opens rollouts, trained policies and live training runs.
+Each geom of the :class:`~torchsim.render.Scene` (plane, sphere, capsule, ellipsoid, cylinder, box, mesh geoms
+with their own triangles, height fields as the scene triangulates them) becomes a mesh in its colour, a child of
+its torchsim body's frame; per update only the bodies' frames move (``State.x_pos`` / ``x_quat``, as
+:func:`torchsim.render.render` reads them). :func:`save_html` records a trajectory into a single HTML file
+holding viser's client and the recording (playback bar, orbit camera) that opens in a browser from disk, with
+neither torchsim nor Python installed. ``pip install -e '.[viewer]'`` installs viser; ``scripts/view.py`` opens
+rollouts, trained policies and live training runs.
 
 Camera: ``eye``/``target``/``fovy`` (degrees, vertical) set the initial view as :meth:`Camera.look_at` does,
 with ``+z`` up; the browser's camera then follows the mouse.
@@ -77,7 +78,8 @@ def geom_mesh(kind: str, size, plane_extent: float = PLANE_EXTENT) -> tuple[np.n
 
 def scene_geom_mesh(scene, k: int, plane_extent: float = PLANE_EXTENT) -> tuple[np.ndarray, np.ndarray]:
     """Vertices and triangles of the scene's geom ``k`` in its own frame: a mesh geom's own (MuJoCo's
-    ``mesh_vert``/``mesh_face``, in the mesh frame, which is the geom frame), else :func:`geom_mesh`."""
+    ``mesh_vert``/``mesh_face``, in the mesh frame, which is the geom frame), a height field's triangulation
+    (surface, walls and bottom, as the renderer draws it: :mod:`torchsim.render.hfield`), else :func:`geom_mesh`."""
     if scene.geom_mesh is not None and int(scene.geom_mesh[k]) >= 0:
         return scene.meshes.geometry(int(scene.geom_mesh[k]))
     return geom_mesh(scene.geom_type[k], scene.geom_size[k].detach().cpu().double().numpy(), plane_extent)
@@ -141,8 +143,8 @@ class Viewer:
             colour = tuple(int(c) for c in np.clip(np.round(rgba[k, :3] * 255), 0, 255))
             self.server.scene.add_mesh_simple(
                 f"{parent}/geom{int(scene.geom_id[k])}", vertices, faces, color=colour, position=pos[k],
-                wxyz=wxyz[k], side="double" if kind in ("plane", "mesh") else "front",
-                flat_shading=kind in ("box", "plane"))
+                wxyz=wxyz[k], side="double" if kind in ("plane", "mesh", "hfield") else "front",
+                flat_shading=kind in ("box", "plane", "hfield"))
 
     @property
     def url(self) -> str:
