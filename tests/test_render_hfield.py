@@ -115,6 +115,23 @@ def test_hfield_agrees_with_mujoco_renderer():
     assert p99 < 1e-3
 
 
+def test_hfield_among_meshes_agrees_with_mujoco_renderer():
+    """``tests/test_render_mesh.py``'s mesh scene with a (visual-only) height field poking through its floor: the
+    field's BVH and the meshes' share one table (trees of different depths), both cameras (the field covers 6% and 3%
+    of their pixels; measured: 100% of depth and segmentation pixels agree)."""
+    from test_render_mesh import MESHES_XML, agreement as mesh_agreement
+
+    field = (f'<hfield name="t" nrow="{NROW}" ncol="{NCOL}" size="1.5 1.2 0.2 0.05" '
+             f'elevation="{fmt(ELEVATION.ravel())}"/>')
+    floor = '<geom name="floor" type="plane" size="2 2 0.1" rgba="0.8 0.8 0.7 1"/>'
+    xml = MESHES_XML.replace("<asset>", "<asset>" + field).replace(
+        floor, floor + '<geom name="terrain" type="hfield" hfield="t" pos="0 0 -0.15" contype="0" conaffinity="0"/>')
+    close, same, _, p99 = mesh_agreement(xml, ("world", "onarm"))
+    assert (close >= 0.998).all(), f"depth agrees on {close} of pixels"
+    assert (same >= 0.998).all(), f"segmentation agrees on {same} of pixels"
+    assert p99 < 1e-3
+
+
 def _dm_control_suite():
     import importlib.util
 
