@@ -87,7 +87,7 @@ def main():
         ax.set_xlabel(xlabel)
         ax.set_ylabel("deterministic eval return")
         ax.grid(alpha=0.3)
-        ax.legend()
+        ax.legend(fontsize=8, loc="lower right")
     fig.suptitle(args.title)
     fig.tight_layout()
     fig.savefig(args.out, dpi=100)
