@@ -40,12 +40,21 @@ class TrainingDiverged(RuntimeError):
 
 
 # ------------------------------------------------------------------------------------------------------ environment
+def compiles(cfg: DictConfig, part: str) -> bool:
+    """Whether ``part`` (``"physics"``: the engine's compiled step; ``"loss"``: ``torch.compile`` of the loss) runs
+    compiled: ``cfg.compile_<part>``, or where that is null or absent (checkpoints written before the split) the
+    shorthand ``cfg.compile``."""
+    value = cfg.get(f"compile_{part}")
+    return bool(cfg.get("compile", True) if value is None else value)
+
+
 def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: TransformedEnv | None = None
              ) -> TransformedEnv:
     """The task batched over ``num_envs`` with running observation normalisation (``RunningNorm``, statistics over
     the batch too), episode return (``episode_reward``) and length (``step_count``); a ``train`` env also emits
     ``scaled_reward`` (``cfg.algo.reward_scale`` times the reward) and staggers its first episodes if
-    ``cfg.stagger_episodes``, and compiles its step if ``cfg.capture``. The physics runs compiled (``torchsim.Stepper``, strategy ``auto``) if ``cfg.compile``,
+    ``cfg.stagger_episodes``, and compiles its step if ``cfg.capture``. The physics runs compiled (``torchsim.Stepper``,
+    strategy ``auto``) if ``compiles(cfg, "physics")``,
     or in MuJoCo C if ``cfg.physics == "mujoco"`` (``torchsim.execution.mujoco``: the same task code on MuJoCo's
     physics); ``like``: an env whose stepper (System and compiled step) this one shares, for any ``num_envs`` above
     1. A navigation task (``torchsim.envs.NAV_ENVS``, no physics) has its depth normalised per pixel instead and
@@ -53,6 +62,7 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
     recurrent policy (``cfg.algo.policy_net.lstm``), holds its states (``nav_policy.recurrent_transforms``)."""
     physics = cfg.get("physics", "torchsim")  # checkpoints from before the key ran on torchsim
     contact_model = cfg.get("contact_model")
+    method, substeps = cfg.get("method"), cfg.get("substeps")  # None: the task's (and in checkpoints before the keys)
     if physics not in ("torchsim", "mujoco"):
         raise ValueError(f"physics must be 'torchsim' or 'mujoco', got {physics!r}")
     if cfg.env.name in torchsim.envs.NAV_ENVS:
@@ -68,15 +78,16 @@ def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: 
             probe = torchsim.envs.make(cfg.env.name, device=device, contact_model=contact_model)  # System, MuJoCo model
             stepper = MujocoStepper(probe.base_sys, probe.mj_model)
         else:
-            stepper = "auto" if cfg.compile else "eager"
+            stepper = "auto" if compiles(cfg, "physics") else "eager"
         base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device,
                                   episode_length=cfg.env.episode_length,
                                   stagger_episodes=train and cfg.stagger_episodes, stepper=stepper,
-                                  contact_model=contact_model if isinstance(stepper, str) else None)
+                                  **(dict(contact_model=contact_model, method=method, substeps=substeps)
+                                     if isinstance(stepper, str) else {}))
         if train and cfg.get("capture", False):
             if stepper != "auto":  # traced as a graph, the reference step compiles for minutes
                 raise ValueError("capture=true compiles the env's step around the engine's compiled step: it needs "
-                                 "compile=true and physics=torchsim")
+                                 "compile=true (or compile_physics=true) and physics=torchsim")
             base.compile_step(mode="reduce-overhead" if torch.device(device).type == "cuda" else None)
         normalised = [k for k in ("observation", "privileged_state") if k in base.observation_spec.keys()]
         recurrent = []
@@ -95,7 +106,7 @@ def make_eval_env(cfg: DictConfig, train_env: TransformedEnv) -> TransformedEnv:
     the evaluation runs on the training batch's size instead of compiling a second graph (measured on an H100: a
     second 43 s compile for 128 envs, none for the training batch)."""
     episodes = cfg.eval.episodes
-    if train_env.device.type != "cpu" and cfg.compile and episodes != train_env.batch_size[0]:
+    if train_env.device.type != "cpu" and compiles(cfg, "physics") and episodes != train_env.batch_size[0]:
         episodes = train_env.batch_size[0]
         log.info(f"evaluating {episodes} episodes (the training batch) on {train_env.device}: the compiled step "
                  f"serves one batch size there")
@@ -199,7 +210,7 @@ def restore_rng(ckpt: dict, device: torch.device) -> None:
 #: define what is learned (algorithm and hyperparameters, networks, env, physics, seed) and must match the
 #: checkpoint's: changing one makes a new run, not a continued one.
 RESUMABLE_KEYS = ("budget", "eval", "print_every", "checkpoint_every", "recent_episodes", "logger", "video", "device",
-                  "threads", "compile", "capture", "resume")
+                  "threads", "compile", "compile_physics", "compile_loss", "capture", "resume")
 
 
 def check_resumable(ckpt: dict, cfg: DictConfig, world_size: int, path) -> None:
@@ -633,6 +644,6 @@ def plot_curves(history: dict, path, title: str) -> None:
 
 
 def maybe_compile(loss_module, cfg: DictConfig):
-    """``torch.compile`` the loss when ``cfg.compile``. Graph breaks (TorchRL's losses have some) run as Python
+    """``torch.compile`` the loss when ``compiles(cfg, "loss")``. Graph breaks (TorchRL's losses have some) run as Python
     between compiled pieces; a compiler error is raised, never hidden behind a silently slow eager loss."""
-    return torch.compile(loss_module) if cfg.compile else loss_module
+    return torch.compile(loss_module) if compiles(cfg, "loss") else loss_module

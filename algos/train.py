@@ -1,7 +1,8 @@
 """Train PPO or SAC on a torchsim env: ``python -m torchsim.train [algo=ppo|sac] [env=<name>] [key=value ...]``
 (``torchsim/train.py`` runs this module).
 
-Configs live in ``torchsim/algos/configs`` (``--cfg job`` prints the composed one); outputs (CSV logs, checkpoints,
+Configs live in ``torchsim/algos/configs`` (``--cfg job`` prints the composed one, a run writes it resolved to
+``config.yaml`` in its run dir); outputs (CSV logs, checkpoints,
 ``curves.png``, ``policy.gif``, ``summary.json``) go to the Hydra run dir ``outputs/<algo>_<env>/<time>/`` (with
 ``_1``, ``_2``, ... appended where another run started in the same second).
 """
@@ -70,6 +71,15 @@ def tuned_settings(cfg: DictConfig) -> str:
             f"untuned defaults of algo/{cfg.algo.name}.yaml and env/{cfg.env.name}.yaml")
 
 
+def write_config(cfg: DictConfig, out_dir) -> pathlib.Path:
+    """Write every setting of the run, resolved (tuned file, recipe and overrides applied; no interpolations), to
+    ``<out_dir>/config.yaml``, the one file to read for what a run used; return its path. (Hydra's
+    ``.hydra/config.yaml`` beside it keeps the interpolations, ``.hydra/overrides.yaml`` the command line.)"""
+    path = pathlib.Path(out_dir, "config.yaml")
+    path.write_text(OmegaConf.to_yaml(cfg, resolve=True))
+    return path
+
+
 def check_config(cfg: DictConfig) -> None:
     """Refuse settings the run would only trip on later: the iteration counts between progress lines and between
     checkpoints divide the iteration number (0 would stop the first iteration with a ZeroDivisionError)."""
@@ -82,7 +92,7 @@ def check_config(cfg: DictConfig) -> None:
 def prepare(cfg: DictConfig, ranks: Ranks = Ranks()) -> None:
     """The process-wide settings a run of ``cfg`` uses: compile announcements, threads (a rank's share of the
     machine's cores where ``cfg.threads`` is null and several ranks share it), seed (``seed + rank``: every rank
-    draws its own envs; rank 0's networks are broadcast). The envs' steppers follow ``cfg.compile``
+    draws its own envs; rank 0's networks are broadcast). The envs' steppers follow ``compile_physics``
     (``torchsim.algos.common.make_env``)."""
     torchsim.progress.announce_torch_compiles()
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # its storage-allocation notices are not progress
@@ -94,9 +104,13 @@ def prepare(cfg: DictConfig, ranks: Ranks = Ranks()) -> None:
 
 @hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
-    logging.getLogger("torchsim.train").info(tuned_settings(cfg))
+    out_dir = HydraConfig.get().runtime.output_dir
+    log = logging.getLogger("torchsim.train")
+    log.info(tuned_settings(cfg))
+    if int(os.environ.get("RANK", "0")) == 0:
+        log.info(f"config: {write_config(cfg, out_dir)} (every setting of this run, resolved)")
     try:
-        run(cfg, HydraConfig.get().runtime.output_dir)
+        run(cfg, out_dir)
     except TrainingDiverged as err:
         print(f"training diverged: {err}", file=sys.stderr)
         sys.exit(1)

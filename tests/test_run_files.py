@@ -15,11 +15,34 @@ from tensordict import TensorDict
 
 from torchsim.algos.common import Run, TrainingDiverged, load_checkpoint
 from torchsim.algos.distributed import Ranks
-from torchsim.algos.train import CONFIG_DIR, fresh_run_dir, run
+from torchsim.algos.common import compiles
+from torchsim.algos.train import CONFIG_DIR, fresh_run_dir, run, write_config
 from tiny_runs import TINY_PPO, tiny_ppo
 
 
 # ------------------------------------------------------------------------------------------------- run directories
+def test_the_run_dir_holds_every_setting_resolved(tmp_path):
+    """``config.yaml`` in the run dir: the composed config with the tuned file and overrides applied and every
+    interpolation resolved (``eval.max_steps`` is ``${env.episode_length}`` in config.yaml)."""
+    cfg = tiny_ppo("eval.max_steps=${env.episode_length}", "substeps=3")
+    written = OmegaConf.load(write_config(cfg, tmp_path))
+    assert written == OmegaConf.to_container(cfg, resolve=True)
+    assert written.eval.max_steps == cfg.env.episode_length and written.substeps == 3
+    assert "${" not in (tmp_path / "config.yaml").read_text()
+
+
+@pytest.mark.parametrize("overrides, physics, loss", [
+    ([], True, True), (["compile=false"], False, False), (["compile=false", "compile_loss=true"], False, True),
+    (["compile_physics=false"], False, True)])
+def test_compile_splits_into_physics_and_loss(overrides, physics, loss):
+    """``compile`` is the shorthand for ``compile_physics`` and ``compile_loss`` where they are null; a checkpoint's
+    config from before the split (``compile`` only) reads as the shorthand."""
+    cfg = tiny_ppo("compile=true", *overrides)
+    assert (compiles(cfg, "physics"), compiles(cfg, "loss")) == (physics, loss)
+    old = OmegaConf.create({"compile": False})
+    assert not compiles(old, "physics") and not compiles(old, "loss")
+
+
 def test_runs_started_in_the_same_second_get_their_own_directories(tmp_path, monkeypatch):
     """Two runs whose clocks read the same second: Hydra's ``now`` is frozen, as it reads for two runs started
     together; each run's ``hydra.run.dir`` is a directory of its own, created as the config is read."""
