@@ -22,7 +22,8 @@ import torch
 from tensordict import TensorDict
 from torch import nn
 
-from torchsim.algos.common import EPISODES, Run, make_env, make_eval_env, obs_norm
+from torchsim.algos.common import EPISODES, Run
+from torchsim.algos.env_factory import make_env, make_eval_env, obs_norm
 from torchsim.algos.networks import make_actor
 from torchsim.algos.distributed import Ranks
 

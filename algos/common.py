@@ -1,325 +1,43 @@
-"""Pieces shared by the recipes: env construction, evaluation, and :class:`Run` (progress, logging, checkpoints,
-budget, plots and the policy video of one training run); their networks are in ``torchsim.algos.networks``."""
+"""A training run (:class:`Run`: progress, logging, checkpoints, budget, plots and the policy video) and the pieces
+the recipes share, each in a module of its own: envs (``env_factory``), what differs per task (``tasks``:
+``physics_task``, ``nav_task``), evaluation (``evaluation``), checkpoints (``checkpoints``), curves and videos
+(``outputs``); their names stay importable from here. The networks are in ``torchsim.algos.networks``."""
 
 import collections
 import json
 import logging
 import os
 import pathlib
-import pickle
-import secrets
-import subprocess
-import sys
 import time
 import warnings
-from typing import NamedTuple
 
 import numpy as np
 import torch
 from omegaconf import DictConfig, OmegaConf
 from tensordict import TensorDict
-from torchrl.envs import Compose, ExplorationType, RewardSum, StepCounter, TransformedEnv, set_exploration_type
-from torchrl.envs.transforms import RewardScaling
-from torchrl.modules import ProbabilisticActor
+from torchrl.envs import TransformedEnv
 from torchrl.record.loggers import get_logger
 
-import torchsim.envs
-from torchsim.algos import nav_policy
+from torchsim.algos.checkpoints import (RESUMABLE_KEYS, check_resumable, config_changes, load_checkpoint,  # noqa: F401
+                                        load_policy, restore_rng, save_checkpoint)
 from torchsim.algos.distributed import Ranks
-from torchsim.algos.networks import make_actor
-from torchsim.algos.normalization import RunningNorm
-from torchsim.envs.nav import video as nav_video
-from torchsim.execution.mujoco import MujocoStepper
+from torchsim.algos.env_factory import compiles, make_env, make_eval_env, obs_norm  # noqa: F401
+from torchsim.algos.evaluation import Evaluation, evaluate  # noqa: F401
+from torchsim.algos.outputs import plot_curves, render_gif, video  # noqa: F401
+
+#: Importable from here as before the split (tests, studies, scripts); new code imports them from their modules.
+__all__ = ["RESUMABLE_KEYS", "check_resumable", "config_changes", "load_checkpoint", "load_policy", "restore_rng",
+           "save_checkpoint", "compiles", "make_env", "make_eval_env", "obs_norm", "Evaluation", "evaluate",
+           "plot_curves", "render_gif", "video", "TrainingDiverged", "EPISODES", "MINIBATCH_ORDER", "RunningEpisodes",
+           "Run", "maybe_compile"]
 
 # tensordict reads a deprecated dynamo flag while torch.compile traces the loss (tensordict 0.14, torch 2.13)
 warnings.filterwarnings("ignore", message=r"torch._dynamo.config.inline_inbuilt_nn_modules is deprecated")
 log = logging.getLogger("torchsim.train")
 
+
 class TrainingDiverged(RuntimeError):
     """A loss became non-finite; the message names the env step and the last good checkpoint."""
-
-
-# ------------------------------------------------------------------------------------------------------ environment
-def compiles(cfg: DictConfig, part: str) -> bool:
-    """Whether ``part`` (``"physics"``: the engine's compiled step; ``"loss"``: ``torch.compile`` of the loss) runs
-    compiled: ``cfg.compile_<part>``, or where that is null or absent (checkpoints written before the split) the
-    shorthand ``cfg.compile``."""
-    value = cfg.get(f"compile_{part}")
-    return bool(cfg.get("compile", True) if value is None else value)
-
-
-def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: TransformedEnv | None = None
-             ) -> TransformedEnv:
-    """The task batched over ``num_envs`` with running observation normalisation (``RunningNorm``, statistics over
-    the batch too), episode return (``episode_reward``) and length (``step_count``); a ``train`` env also emits
-    ``scaled_reward`` (``cfg.algo.reward_scale`` times the reward) and staggers its first episodes if
-    ``cfg.stagger_episodes``, and compiles its step if ``cfg.capture``. The physics runs compiled (``torchsim.Stepper``,
-    strategy ``auto``) if ``compiles(cfg, "physics")``,
-    or in MuJoCo C if ``cfg.physics == "mujoco"`` (``torchsim.execution.mujoco``: the same task code on MuJoCo's
-    physics); ``like``: an env whose stepper (System and compiled step) this one shares, for any ``num_envs`` above
-    1. A navigation task (``torchsim.envs.NAV_ENVS``, no physics) has its depth normalised per pixel instead and
-    draws its episodes from the layouts of ``cfg.env.split`` if ``train``, else of ``cfg.env.eval_split``, and, for a
-    recurrent policy (``cfg.algo.policy_net.lstm``), holds its states (``nav_policy.recurrent_transforms``)."""
-    physics = cfg.get("physics", "torchsim")  # checkpoints from before the key ran on torchsim
-    contact_model = cfg.get("contact_model")
-    method, substeps = cfg.get("method"), cfg.get("substeps")  # None: the task's (and in checkpoints before the keys)
-    if physics not in ("torchsim", "mujoco"):
-        raise ValueError(f"physics must be 'torchsim' or 'mujoco', got {physics!r}")
-    if cfg.env.name in torchsim.envs.NAV_ENVS:
-        base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device,
-                                  episode_length=cfg.env.episode_length, num_layouts=cfg.env.num_layouts,
-                                  split=cfg.env.split if train else cfg.env.eval_split, seed=cfg.seed)
-        normalised = ["depth"]
-        recurrent = nav_policy.recurrent_transforms(cfg.algo.policy_net)  # states, episode starts (or none)
-    else:
-        if like is not None:
-            stepper = like.base_env.stepper
-        elif physics == "mujoco":
-            probe = torchsim.envs.make(cfg.env.name, device=device, contact_model=contact_model)  # System, MuJoCo model
-            stepper = MujocoStepper(probe.base_sys, probe.mj_model)
-        else:
-            stepper = "auto" if compiles(cfg, "physics") else "eager"
-        base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device,
-                                  episode_length=cfg.env.episode_length,
-                                  stagger_episodes=train and cfg.stagger_episodes, stepper=stepper,
-                                  **(dict(contact_model=contact_model, method=method, substeps=substeps)
-                                     if isinstance(stepper, str) else {}))
-        if train and cfg.get("capture", False):
-            if stepper != "auto":  # traced as a graph, the reference step compiles for minutes
-                raise ValueError("capture=true compiles the env's step around the engine's compiled step: it needs "
-                                 "compile=true (or compile_physics=true) and physics=torchsim")
-            base.compile_step(mode="reduce-overhead" if torch.device(device).type == "cuda" else None)
-        normalised = [k for k in ("observation", "privileged_state") if k in base.observation_spec.keys()]
-        recurrent = []
-    spec = base.observation_spec
-    norm = RunningNorm({k: spec[k].shape[base.batch_dims:] for k in normalised}, decay=cfg.obs_norm_decay,
-                       eps=1e-4, dtype=spec[normalised[0]].dtype).to(device)
-    transforms = [norm, RewardSum(), StepCounter(), *recurrent]
-    if train:  # the losses learn from scaled_reward; reward (and episode_reward) stay the task's
-        transforms.append(RewardScaling(0.0, cfg.algo.reward_scale, in_keys=["reward"], out_keys=["scaled_reward"]))
-    return TransformedEnv(base, Compose(*transforms))
-
-
-def make_eval_env(cfg: DictConfig, train_env: TransformedEnv) -> TransformedEnv:
-    """The evaluation env: ``cfg.eval.episodes`` envs sharing ``train_env``'s compiled step. On CPU that step serves
-    any batch above one env; on a GPU it is compiled for its batch (the ``loop`` strategy, static shapes), so there
-    the evaluation runs on the training batch's size instead of compiling a second graph (measured on an H100: a
-    second 43 s compile for 128 envs, none for the training batch)."""
-    episodes = cfg.eval.episodes
-    if train_env.device.type != "cpu" and compiles(cfg, "physics") and episodes != train_env.batch_size[0]:
-        episodes = train_env.batch_size[0]
-        log.info(f"evaluating {episodes} episodes (the training batch) on {train_env.device}: the compiled step "
-                 f"serves one batch size there")
-    if nav_policy.is_nav_env(train_env):
-        return make_env(cfg, episodes, train_env.device)
-    return make_env(cfg, episodes, train_env.device, like=train_env)
-
-
-def obs_norm(env: TransformedEnv) -> RunningNorm:
-    return env.transform[0]
-
-
-# ------------------------------------------------------------------------------------------------------- evaluation
-class Evaluation(NamedTuple):
-    """Per env (B,): the return and length of its first episode, and, for goal-reaching tasks, the goal distance
-    [m] at the episode's end (else None); ``trajectory``: env 0's episode when recorded (else None), as ``q``
-    rows ``(T, nq)`` for physics envs and :class:`~torchsim.envs.nav.video.NavFrame` s for navigation envs; for
-    navigation tasks (which emit them), the episode's ``success`` (bool) and ``spl``."""
-
-    ret: torch.Tensor
-    length: torch.Tensor
-    final_distance: torch.Tensor | None
-    trajectory: np.ndarray | list | None
-    success: torch.Tensor | None = None
-    spl: torch.Tensor | None = None
-
-    def success_rate(self, success_distance: float) -> float:
-        return (self.final_distance < success_distance).float().mean().item()
-
-
-@torch.no_grad()
-def evaluate(env: TransformedEnv, policy, max_steps: int, record: bool = False, seed: int | None = None,
-             deterministic: bool = True) -> Evaluation:
-    """Deterministic evaluation (or, not ``deterministic``, with sampled actions) of each env's first episode (at
-    most ``max_steps`` steps); with ``record``, env 0's trajectory for a video (``video``). Finished envs keep stepping,
-    masked out, so the batch stays fixed; the loop stops once every env has finished. With ``seed``, the episodes
-    start from the same states at every call (drawn from a forked RNG, leaving the caller's stream alone), so
-    successive evaluations compare policies, not start draws; a navigation env draws its episodes from its own
-    generator, which ``seed`` then reseeds."""
-    nav = nav_policy.is_nav_env(env)
-    if seed is None:
-        td = env.reset()
-    else:
-        with torch.random.fork_rng(devices=[env.device] if env.device.type == "cuda" else []):
-            torch.manual_seed(seed)
-            if nav:
-                env.set_seed(seed)
-            td = env.reset()
-    alive = torch.ones(env.batch_size, dtype=torch.bool, device=env.device)
-    ret = torch.zeros(env.batch_size, device=env.device)
-    length = torch.zeros(env.batch_size, dtype=torch.long, device=env.device)
-    goal_task = "goal_distance" in env.observation_spec.keys()
-    distance = torch.full(env.batch_size, float("nan"), device=env.device) if goal_task else None
-    success = torch.zeros(env.batch_size, dtype=torch.bool, device=env.device) if nav else None
-    spl = torch.zeros(env.batch_size, device=env.device) if nav else None
-    snapshot = (lambda: nav_video.snapshot(env.base_env, 0)) if nav else (lambda: env.base_env.state.q[0].cpu())
-    trajectory = [snapshot()] if record else None
-    with set_exploration_type(ExplorationType.DETERMINISTIC if deterministic else ExplorationType.RANDOM):
-        for t in range(max_steps):
-            td = env.step(policy(td))
-            ret += td["next", "reward"].squeeze(-1) * alive
-            length += alive
-            if goal_task:
-                distance = torch.where(alive, td["next", "goal_distance"].squeeze(-1), distance)
-            if nav:  # nonzero on an episode's last step only
-                success |= td["next", "success"].squeeze(-1) & alive
-                spl += td["next", "spl"].squeeze(-1) * alive
-            if record and bool(alive[0]):
-                trajectory.append(snapshot())
-            alive &= ~td["next", "done"].squeeze(-1)
-            if t % 10 == 9 and not alive.any():  # one host sync every 10 steps
-                break
-            td = env.step_mdp(td)
-    if record and not nav:
-        trajectory = torch.stack(trajectory).double().numpy()
-    return Evaluation(ret, length, distance, trajectory, success, spl)
-
-
-def load_checkpoint(path, device="cpu") -> dict:
-    """The checkpoint ``path`` (a ``last.pt``) with its tensors on ``device``, read with ``weights_only``: tensors and
-    plain containers only, so a hostile file cannot run code as it loads (a checkpoint holds nothing else:
-    ``Run.save``)."""
-    try:
-        return torch.load(path, map_location=device, weights_only=True)
-    except pickle.UnpicklingError as err:
-        raise pickle.UnpicklingError(f"refused to load {path}: it holds objects other than tensors and plain "
-                                     f"containers, which a torchsim checkpoint never does ({err})") from err
-
-
-def restore_rng(ckpt: dict, device: torch.device) -> None:
-    """Continue the random streams of checkpoint ``ckpt``: the CPU generator's saved state goes back to the CPU
-    generator and, for a run on a GPU, the GPU's to ``device``'s. Both states are CPU ByteTensors, as the setters
-    require, whatever device the checkpoint's tensors were loaded onto."""
-    torch.set_rng_state(ckpt["rng"].cpu())
-    if device.type == "cuda" and "cuda_rng" in ckpt:  # none where the checkpointed run ran on the CPU
-        torch.cuda.set_rng_state(ckpt["cuda_rng"].cpu(), device)
-
-
-#: The config keys a resumed run may set anew: how long it runs (``budget``), how it is watched (evaluation, progress
-#: lines, checkpoints, logger, video) and where and how fast it computes (device, threads, compile). The others
-#: define what is learned (algorithm and hyperparameters, networks, env, physics, seed) and must match the
-#: checkpoint's: changing one makes a new run, not a continued one.
-RESUMABLE_KEYS = ("budget", "eval", "print_every", "checkpoint_every", "recent_episodes", "logger", "video", "device",
-                  "threads", "compile", "compile_physics", "compile_loss", "capture", "resume")
-
-
-def check_resumable(ckpt: dict, cfg: DictConfig, world_size: int, path) -> None:
-    """Refuse (ValueError naming each key and both values) to resume checkpoint ``ckpt`` (read from ``path``) with
-    ``cfg`` on ``world_size`` ranks where its config differs outside ``RESUMABLE_KEYS`` or its world size differs
-    (each rank's share of the envs, and their streams, would change)."""
-    changes = config_changes(ckpt["cfg"], cfg)
-    saved_world_size = ckpt.get("world_size")  # None: written before checkpoints recorded it
-    if saved_world_size is not None and saved_world_size != world_size:
-        changes.append(f"world size ({saved_world_size} ranks in the checkpoint, {world_size} now)")
-    if changes:
-        raise ValueError(f"cannot resume {path}: this run differs from the checkpoint's in {'; '.join(changes)}. A "
-                         f"resumed run may change only {', '.join(RESUMABLE_KEYS)}: start a new run to change others")
-
-
-def config_changes(saved: dict, cfg: DictConfig) -> list[str]:
-    """The keys outside ``RESUMABLE_KEYS`` whose values differ between a checkpoint's config ``saved`` and ``cfg``,
-    each with both values. A key that only one of them has (added to the configs after the checkpoint was written,
-    or removed since) has no value to compare with and is left out."""
-    old, new = _flatten(saved), _flatten(OmegaConf.to_container(cfg, resolve=True))
-    return [f"{key} ({old[key]!r} in the checkpoint, {new[key]!r} now)" for key in old
-            if key in new and old[key] != new[key] and key.split(".")[0] not in RESUMABLE_KEYS]
-
-
-def _flatten(tree: dict, prefix: str = "") -> dict:
-    """``tree``'s leaves by dotted key: ``{"algo": {"lr": 1e-3}}`` -> ``{"algo.lr": 1e-3}`` (a list is a leaf)."""
-    flat = {}
-    for key, value in tree.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{key}."))
-        else:
-            flat[prefix + str(key)] = value
-    return flat
-
-
-def save_checkpoint(ckpt: dict, path: pathlib.Path, previous: pathlib.Path) -> None:
-    """Write ``ckpt`` to ``path``, moving the file that was there to ``previous``. It is written under a unique temp
-    name beside ``path`` (two writers never share one), flushed and fsynced, and only then renamed, so neither
-    name ever holds part of a checkpoint, whatever stops the process; a failed write leaves no temp file behind."""
-    # not mkstemp: its files are private to the user (0600), a checkpoint gets the permissions the umask gives
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.{secrets.token_hex(4)}.tmp")
-    f = open(tmp, "xb")  # x: fails rather than share a name (the cleanup below is then not ours to do)
-    try:
-        with f:
-            torch.save(ckpt, f)
-            f.flush()
-            os.fsync(f.fileno())
-        if path.exists():  # a process stopped between these renames leaves previous (the last good state)
-            os.replace(path, previous)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    directory = os.open(path.parent, os.O_RDONLY)  # the renames reach the disk too, not only the data
-    try:
-        os.fsync(directory)
-    finally:
-        os.close(directory)
-
-
-def load_policy(ckpt: dict, env: TransformedEnv, device) -> ProbabilisticActor:
-    """The actor of checkpoint ``ckpt`` (a loaded ``last.pt``), with ``env``'s normaliser set to the checkpoint's
-    statistics and frozen."""
-    cfg = OmegaConf.create(ckpt["cfg"])
-    actor = make_actor(env, cfg.algo.policy_net, device)
-    actor.load_state_dict(ckpt["actor"])
-    obs_norm(env).load_state_dict(ckpt["state"]["obs_norm"])
-    obs_norm(env).freeze()
-    return actor
-
-
-def video(env: TransformedEnv, env_name: str, trajectory, path: pathlib.Path) -> None:
-    """Write env 0's recorded ``trajectory`` (``evaluate(..., record=True)``) as the GIF ``path``: a navigation
-    env's map and depth view (``torchsim.envs.nav.video``, 10 frames/s), a physics env's bodies (``render_gif``)."""
-    if nav_policy.is_nav_env(env):
-        from torchsim.envs.video import save_gif
-
-        save_gif(nav_video.episode_frames(trajectory), path, fps=10)
-        log.info(f"video: {path}")
-    else:
-        render_gif(env_name, trajectory, env.base_env.dt, path)
-
-
-def render_gif(env_name: str, qpos: np.ndarray, dt: float, path: pathlib.Path, renderer: str = "torchsim",
-               width: int = 320, height: int = 240) -> None:
-    """Write a ``width`` x ``height`` GIF of ``qpos``. ``renderer="torchsim"`` (default): torchsim's own renderer,
-    in this process (no GL context; ``torchsim.envs.video.render_frames_torchsim``); models it cannot draw (height
-    fields) fall back to ``"mujoco"``: MuJoCo's renderer in a child process, as MuJoCo picks its GL backend when first
-    imported (``MUJOCO_GL``), which in this process happened before we could choose EGL."""
-    path = pathlib.Path(path)
-    if renderer == "torchsim":
-        from torchsim.envs.video import render_frames_torchsim, save_gif
-        from torchsim.render import UnsupportedGeomError
-
-        task = torchsim.envs.make(env_name)
-        try:
-            save_gif(render_frames_torchsim(task.mj_model, task.sys, qpos, width, height), path, fps=1.0 / dt)
-            log.info(f"video: {path}")
-            return
-        except UnsupportedGeomError as err:
-            log.info(f"torchsim's renderer cannot draw {env_name} ({err}); rendering with MuJoCo")
-    np.save(path.with_suffix(".npy"), qpos)
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    proc = subprocess.run([sys.executable, "-m", "torchsim.algos.render", env_name, str(path.with_suffix(".npy")),
-                           str(path), str(1.0 / dt), str(width), str(height)], env=env, capture_output=True, text=True)
-    if proc.returncode:
-        warnings.warn(f"no video ({proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else 'render failed'})")
-    else:
-        log.info(f"video: {path}")
 
 
 # ------------------------------------------------------------------------------------------------------- a training run
@@ -606,41 +324,6 @@ class Run:
             summary["final_eval_success_rate"] = self.history["eval_success"][-1][2]
         (self.out_dir / "summary.json").write_text(json.dumps(summary, indent=1))
         log.info(f"done: {summary}; outputs in {self.out_dir}")
-
-
-def plot_curves(history: dict, path, title: str) -> None:
-    """Eval and train return against env steps and against wall-clock minutes, and the training batches' mean reward
-    per env step (it moves before whole-episode returns do in short runs); for goal-reaching tasks a fourth panel
-    shows the evaluation success rate against env steps (PNG)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    goal_task = bool(history.get("eval_success"))
-    fig, axes = plt.subplots(1, 4 if goal_task else 3, figsize=(20 if goal_task else 15, 3.8))
-    for key, style in (("eval", "o-"), ("train", "-")):
-        rows = np.array(history[key]).reshape(-1, 3)
-        axes[0].plot(rows[:, 0], rows[:, 2], style, label=f"{key} return")
-        axes[1].plot(rows[:, 1] / 60, rows[:, 2], style, label=f"{key} return")
-    for ax in axes[:2]:
-        ax.set_ylabel("return")
-    rows = np.array(history.get("step_reward", [])).reshape(-1, 3)
-    axes[2].plot(rows[:, 0], rows[:, 2], "-", color="C2", label="train reward per env step")
-    axes[2].set_ylabel("reward per step")
-    if goal_task:
-        rows = np.array(history["eval_success"])
-        axes[3].plot(rows[:, 0], rows[:, 2], "o-", label="eval success rate")
-        axes[3].set_ylabel("success rate")
-        axes[3].set_ylim(-0.02, 1.02)
-    for ax in axes:
-        ax.set_xlabel("wall-clock (min)" if ax is axes[1] else "env steps")
-        ax.grid(alpha=0.3)
-        ax.legend()
-    fig.suptitle(title)
-    fig.tight_layout()
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
 
 
 def maybe_compile(loss_module, cfg: DictConfig):

@@ -4,7 +4,7 @@ the depth image, an embedding of the point goal, and an MLP head, as TorchRL mod
 The encoder follows the published SE-ResNet9 of DD-PPO in spirit, sized for CPU training: a strided stem, then per
 stage a strided 3x3 convolution and ``blocks`` residual blocks (two 3x3 convolutions, a squeeze-and-excitation
 gate, the skip connection), no normalisation layers, ReLU throughout. Depth arrives standardised per pixel by the
-recipe's running normaliser (``algos/common.py``, ``make_env``). The goal ``(distance, angle)`` enters as
+recipe's running normaliser (``algos/env_factory.py``, ``make_env``). The goal ``(distance, angle)`` enters as
 ``(log(1 + distance), cos angle, sin angle)`` through a linear layer and ReLU. The head is the recipe's ``mlp``
 (passed in as ``make_head``: this module does not import ``networks``, which imports it).
 
@@ -13,7 +13,7 @@ and goal embedding feed a TorchRL ``LSTMModule`` of that many units, the trunk t
 head share (:func:`make_value` builds the value on the policy's trunk). Sharing it keeps one recurrent state per
 env, which the collector carries from step to step as the actor runs (a critic with its own LSTM would need its
 states carried too, though the collector never runs it). The env holds the states (:func:`recurrent_transforms`,
-added by ``algos/common.py``, ``make_env``) and zeroes them at every episode start; PPO trains on whole per-env
+added by ``algos/nav_task.py``, ``make_base``) and zeroes them at every episode start; PPO trains on whole per-env
 sequences in recurrent mode (``algos/ppo.py``).
 """
 

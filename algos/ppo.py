@@ -17,8 +17,8 @@ from torchrl.modules import set_recurrent_mode
 from torchrl.objectives import ClipPPOLoss
 from torchrl.objectives.value import GAE
 
-from torchsim.algos.common import (EPISODES, MINIBATCH_ORDER, Run, RunningEpisodes, make_env, make_eval_env,
-                                   maybe_compile, obs_norm)
+from torchsim.algos.common import EPISODES, MINIBATCH_ORDER, Run, RunningEpisodes, maybe_compile
+from torchsim.algos.env_factory import make_env, make_eval_env, obs_norm
 from torchsim.algos.nav_policy import is_recurrent
 from torchsim.algos.networks import make_actor, make_state_probe, make_value
 from torchsim.algos.distributed import Ranks

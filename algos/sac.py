@@ -10,7 +10,8 @@ from torchrl.collectors import Collector
 from torchrl.data import LazyTensorStorage, TensorDictReplayBuffer
 from torchrl.objectives import SACLoss, SoftUpdate
 
-from torchsim.algos.common import EPISODES, Run, RunningEpisodes, make_env, make_eval_env, maybe_compile, obs_norm
+from torchsim.algos.common import EPISODES, Run, RunningEpisodes, maybe_compile
+from torchsim.algos.env_factory import make_env, make_eval_env, obs_norm
 from torchsim.algos.networks import make_actor, make_value
 from torchsim.algos.distributed import Ranks
 

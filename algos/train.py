@@ -93,7 +93,7 @@ def prepare(cfg: DictConfig, ranks: Ranks = Ranks()) -> None:
     """The process-wide settings a run of ``cfg`` uses: compile announcements, threads (a rank's share of the
     machine's cores where ``cfg.threads`` is null and several ranks share it), seed (``seed + rank``: every rank
     draws its own envs; rank 0's networks are broadcast). The envs' steppers follow ``compile_physics``
-    (``torchsim.algos.common.make_env``)."""
+    (``torchsim.algos.physics_task.make_base``)."""
     torchsim.progress.announce_torch_compiles()
     logging.getLogger("torchrl").setLevel(logging.WARNING)  # its storage-allocation notices are not progress
     threads = cfg.threads if cfg.threads is not None or not ranks.parallel else ranks.threads()

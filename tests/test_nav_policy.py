@@ -11,7 +11,9 @@ from torchrl.envs import ExplorationType, set_exploration_type
 from torchrl.envs.utils import check_env_specs
 
 from test_train import QUIET, config
-from torchsim.algos.common import evaluate, make_env, make_eval_env
+from torchsim.algos import nav_task, physics_task, tasks
+from torchsim.algos.env_factory import make_env, make_eval_env
+from torchsim.algos.evaluation import evaluate
 from torchsim.algos.evaluate import main as evaluate_main
 from torchsim.algos.networks import make_actor, make_value
 from torchsim.algos.nav_policy import STOP_LOGIT_INIT, NavNet
@@ -33,6 +35,14 @@ def cfg():
 @pytest.fixture(scope="module")
 def env(cfg):
     return make_env(cfg, 6, "cpu", train=True)
+
+
+def test_pointnav_specifics_live_in_its_task_module(cfg, env):
+    """The recipes ask ``tasks`` which module builds an env and what its evaluation adds: ``nav_task`` for PointNav,
+    ``physics_task`` for the MJCF tasks and their pixel versions."""
+    assert tasks.for_name("pointnav") is nav_task and tasks.for_env(env) is nav_task
+    assert tasks.for_name("ant") is physics_task and tasks.for_name("reacher_pixels") is physics_task
+    assert nav_task.EPISODE_END_METRICS == ("success", "spl") and not nav_task.SHARES_STEPPER
 
 
 def test_env_as_the_recipe_wraps_it(cfg, env):
