@@ -44,8 +44,8 @@ def test_pairs_are_every_ordered_pair_on_a_common_body():
 
 def test_soft_contact_tables_list_each_points_bodies():
     """Each contact point acts on its pair's moving bodies, +1 on the first (the normal pushes it) and -1 on the
-    second, and the tables list exactly those incidences, grouped by body; impulse contacts, which never read
-    them, get empty tables."""
+    second, and the tables list exactly those incidences, grouped by body, then by point; impulse contacts, which
+    never read them, get empty tables."""
     sys = torchsim.load_mjcf(BODIES_THAT_TOUCH, dtype=F64, contact_model="soft")
     world = sys.num_bodies
     expected = set()
@@ -61,6 +61,7 @@ def test_soft_contact_tables_list_each_points_bodies():
     rows = list(zip(sys.contact_inc_point.tolist(), body, sys.contact_inc_sign.tolist()))
     assert point == sys.num_contacts and len(rows) == len(set(rows)) and set(rows) == expected
     assert body == sorted(body) and any(s < 0 for _, _, s in rows)
+    assert rows == sorted(expected, key=lambda row: (row[1], row[0], row[2]))  # by body, then point
     assert [tuple(p) for p in sys.contact_inc_pairs.tolist()] == expected_pairs(body)
     impulse = torchsim.load_mjcf(BODIES_THAT_TOUCH, dtype=F64)
     assert impulse.num_contacts == sys.num_contacts

@@ -42,17 +42,24 @@ def incidence_tables(incidences: list):
     ``k`` ascending (the blocks of a coupling through the bodies: hinges here, contact points in
     ``torchsim.soft_contacts``). Linear in ``P + Q`` (a body's ``K`` incidences make ``K^2`` pairs)."""
     body, item, sign = (np.array(col) for col in zip(*incidences)) if incidences else (np.zeros(0),) * 3
-    body = body.astype(np.int64)
+    return incidence_columns(body, item, sign)
+
+
+def incidence_columns(body: np.ndarray, item: np.ndarray, sign: np.ndarray):
+    """:func:`incidence_tables` of the incidences given as three columns ``(P,)``."""
+    body = np.asarray(body).astype(np.int64)
     # each body's incidences in list order, and where row i's body starts among them
     order = np.argsort(body, kind="stable")
     start = np.searchsorted(body[order], body, side="left")
     count = np.searchsorted(body[order], body, side="right") - start
-    first = np.repeat(np.arange(len(body)), count)
-    rank = np.arange(len(first)) - np.repeat(np.cumsum(count) - count, count)  # k's place among i's body's rows
-    second = order[np.repeat(start, count) + rank]
+    # pair q of row i is (i, order[start_i + rank]), rank = q - (i's first pair) its place among i's body's rows
+    pairs = np.empty((int(count.sum()), 2), dtype=np.int64)
+    pairs[:, 0] = np.repeat(np.arange(len(body), dtype=np.int64), count)
+    place = np.arange(len(pairs), dtype=np.int64)
+    place -= np.repeat(np.cumsum(count) - count - start, count)
+    pairs[:, 1] = order[place]
     return (torch.as_tensor(body), torch.as_tensor(np.asarray(item, dtype=np.int64)),
-            torch.as_tensor(np.asarray(sign, dtype=np.float64)),
-            torch.as_tensor(np.stack((first, second), -1).astype(np.int64)).reshape(-1, 2))
+            torch.as_tensor(np.asarray(sign, dtype=np.float64)), torch.as_tensor(pairs))
 
 
 class LimitRows(NamedTuple):

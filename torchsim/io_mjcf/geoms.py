@@ -64,39 +64,66 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies, contact_soft: bool) -> di
             warnings.warn(f"geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r}: non-primitive geom found no contact "
                           "partner and is used for mass only", stacklevel=3)
     contact_groups = tuple(
-        ContactGroup(kind, *(torch.as_tensor([p[i] for p in rows], dtype=torch.long if i < 2 else torch.float64)
-                             for i in range(4)))
+        ContactGroup(kind, *(torch.as_tensor(np.array([p[i] for p in rows]),
+                                             dtype=torch.long if i < 2 else torch.float64) for i in range(4)))
         for kind, rows in sorted(groups.items()))
     # the soft contacts' parameters per contact point, in collision.contacts' order: groups, then pairs, then points
+    # (each pair's row repeated over its points: a mesh pair has hundreds)
     hulls = hull_fields(m, [g for rows in groups.values() for p in rows for g in p[:2]])
     hull_vertices = hulls["geom_hull_vert"].shape[1]
-    points = [p for kind, rows in sorted(groups.items()) for p in rows
-              for _ in range(points_per_pair(kind, hull_vertices))]
-    solref, solimp, invweight = (np.array([p[4 + i] for p in points]).reshape(-1, *shape)
+    ordered = [p for kind, rows in sorted(groups.items()) for p in rows]
+    repeats = np.array([points_per_pair(kind, hull_vertices) for kind, rows in sorted(groups.items()) for _ in rows],
+                       dtype=np.int64)
+    solref, solimp, invweight = (np.repeat(np.array([p[4 + i] for p in ordered]).reshape(-1, *shape), repeats, 0)
                                  for i, shape in enumerate(((2,), (5,), ())))
-    bodies = [[fused.body_of(m, m.geom_bodyid[g]) for g in p[:2]] for p in points]
+    geom_body = np.array([fused.body_of(m, m.geom_bodyid[g]) for g in range(m.ngeom)], dtype=np.int64)
+    pair_geoms = np.array([p[:2] for p in ordered], dtype=np.int64).reshape(-1, 2)
+    bodies = np.repeat(geom_body[pair_geoms], repeats, 0)  # (C, 2) each point's two ext bodies
     return dict(
-        geom_body=torch.as_tensor([fused.body_of(m, m.geom_bodyid[g]) for g in range(m.ngeom)], dtype=torch.long),
+        geom_body=torch.as_tensor(geom_body, dtype=torch.long),
         geom_pos=torch.as_tensor(np.array(gpos).reshape(-1, 3)), geom_quat=torch.as_tensor(np.array(gquat).reshape(-1, 4)),
         geom_size=torch.as_tensor(m.geom_size.copy()), **hulls, **hfield_fields(m, groups),
         contact_groups=contact_groups,
         contact_gains=torch.as_tensor(solref_gains(m, solref, solimp)), contact_solimp=torch.as_tensor(solimp),
         contact_invweight=torch.as_tensor(invweight), contact_solimp_square=bool((solimp[:, 4] == 2).all()),
         contact_pyramidal=m.opt.cone == int(mujoco.mjtCone.mjCONE_PYRAMIDAL),
-        **contact_incidence(bodies if contact_soft else [], fused.index[0]),
+        **contact_incidence(bodies if contact_soft else bodies[:0], fused.index[0]),
     )
 
 
-def contact_incidence(bodies: list, world: int) -> dict:
+#: The most ordered pairs of contact points on a common body the soft contacts' tables may hold (``contact_incidence``):
+#: each pair is a row of the ``(Q, 2)`` table (16 bytes) and a product per env per substep; a body's ``K`` points make
+#: ``K^2`` of them. robosuite's GR1 (7568 points, its boxes touching each other) makes 9.4 million; dm_control's
+#: fruit fly (drosophila_fused, 439374 points on 85 capped mesh hulls) 14.8 billion, 110 GiB of table alone.
+MAX_SOFT_CONTACT_PAIRS = 50_000_000
+
+
+def contact_incidence(bodies: np.ndarray, world: int) -> dict:
     """Load-time tables of which contact points act on which moving body, for the soft contacts' coupled solve
     (``torchsim.soft_contacts``): one row per (point, body), point ``(P,)``, ext body ``(P,)`` and sign ``(P,)``
-    (+1 for the pair's first body, which the normal pushes, -1 for the second), grouped by body; and ``(Q, 2)``
-    the ordered pairs of rows on a common body. ``bodies``: each point's two ext bodies (none for impulse
-    contacts, which do not read the tables: a body with ``K`` points makes ``K^2`` pairs, 9.4 million for
-    robosuite's GR1, whose boxes touch each other); ``world``: the world's."""
-    rows = sorted((body, point, sign) for point, pair in enumerate(bodies)
-                  for body, sign in zip(pair, (1.0, -1.0)) if body != world)
-    body, point, sign, pairs = joint_space.incidence_tables(rows)
+    (+1 for the pair's first body, which the normal pushes, -1 for the second), grouped by body (then by point);
+    and ``(Q, 2)`` the ordered pairs of rows on a common body. ``bodies (C, 2)``: each point's two ext bodies
+    (none for impulse contacts, which do not read the tables); ``world``: the world's. A body's ``K`` points make
+    ``K^2`` pairs: more than ``MAX_SOFT_CONTACT_PAIRS`` in all is refused, naming the count, before any is built."""
+    bodies = np.asarray(bodies, dtype=np.int64).reshape(-1, 2)
+    body = bodies.reshape(-1)
+    point = np.repeat(np.arange(len(bodies), dtype=np.int64), 2)
+    sign = np.tile(np.array([1.0, -1.0]), len(bodies))
+    keep = body != world
+    body, point, sign = body[keep], point[keep], sign[keep]
+    order = np.lexsort((sign, point, body))  # as sorted (body, point, sign) rows
+    body, point, sign = body[order], point[order], sign[order]
+    per_body = np.bincount(body) if len(body) else np.zeros(0, np.int64)
+    num_pairs = int((per_body.astype(np.int64) ** 2).sum())
+    if num_pairs > MAX_SOFT_CONTACT_PAIRS:
+        raise UnsupportedMJCFError(
+            f"contact_model='soft' couples every pair of contact points on a common body: this model's "
+            f"{len(bodies)} contact points make {num_pairs:,} such pairs (the busiest body has {per_body.max()} "
+            f"points), more than the {MAX_SOFT_CONTACT_PAIRS:,} torchsim builds (torchsim.io_mjcf.geoms."
+            "MAX_SOFT_CONTACT_PAIRS); load it with contact_model='impulse', or exclude geom pairs "
+            "(<contact><exclude>, contype/conaffinity) or cap mesh hulls lower (max_hull_vertices) to have fewer "
+            "points")
+    body, point, sign, pairs = joint_space.incidence_columns(body, point, sign)
     return dict(contact_inc_point=point, contact_inc_body=body, contact_inc_sign=sign, contact_inc_pairs=pairs)
 
 
@@ -105,20 +132,18 @@ def candidate_pairs(m: mujoco.MjModel) -> dict:
     solimp (5,), invweight)}, with MuJoCo's rules for combining the two geoms' values (:func:`_mixed`)."""
     weld, parent = m.body_weldid, m.body_parentid
     filter_parent = not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_FILTERPARENT)
-    excluded = {int(s) for s in m.exclude_signature}
+    excluded = np.array(sorted({int(s) for s in m.exclude_signature}), dtype=np.int64)
+    body, contype, conaffinity = m.geom_bodyid.astype(np.int64), m.geom_contype, m.geom_conaffinity
     pairs = {}
-    for g1 in range(m.ngeom):
-        for g2 in range(g1 + 1, m.ngeom):
-            b1, b2 = m.geom_bodyid[g1], m.geom_bodyid[g2]
-            w1, w2 = weld[b1], weld[b2]
-            if w1 == w2:
-                continue
-            if not (m.geom_contype[g1] & m.geom_conaffinity[g2] or m.geom_contype[g2] & m.geom_conaffinity[g1]):
-                continue
-            if filter_parent and w1 and w2 and (weld[parent[w1]] == w2 or weld[parent[w2]] == w1):
-                continue
-            if ((min(b1, b2) << 16) + max(b1, b2)) in excluded:
-                continue
+    for g1 in range(m.ngeom):  # the filters on all of g1's partners at once: one pass per geom, not per pair
+        g2 = np.arange(g1 + 1, m.ngeom)
+        b1, b2 = body[g1], body[g2]
+        w1, w2 = weld[b1], weld[b2]
+        keep = (w1 != w2) & ((contype[g1] & conaffinity[g2]) | (contype[g2] & conaffinity[g1]) != 0)
+        if filter_parent and w1:
+            keep &= ~((w2 != 0) & ((weld[parent[w1]] == w2) | (weld[parent[w2]] == w1)))
+        keep &= ~np.isin((np.minimum(b1, b2) << 16) + np.maximum(b1, b2), excluded)
+        for g2 in g2[keep].tolist():
             condim = max(m.geom_condim[g1], m.geom_condim[g2])
             friction = max(m.geom_friction[g1, 0], m.geom_friction[g2, 0])
             margin = max(m.geom_margin[g1], m.geom_margin[g2])

@@ -106,10 +106,15 @@ def _planes(verts: np.ndarray, triangles: np.ndarray, inside: np.ndarray) -> tup
     planes = np.concatenate([normal, offset[:, None]], 1) * flip
     scale = np.abs(verts).max()
     tolerance = np.array([1e-5, 1e-5, 1e-5, 1e-5 * scale])
-    merged, plane_of = [], []
-    for p in planes:
-        same = [k for k, q in enumerate(merged) if (np.abs(p - q) <= tolerance).all()]
-        plane_of.append(same[0] if same else len(merged))
-        if not same:
-            merged.append(p)
-    return np.array(merged), plane_of
+    # greedy in triangle order: a triangle joins the first merged plane it matches, else starts one. The first
+    # triangle left unassigned starts the next plane, which takes every unassigned triangle that matches it
+    # (one pass per merged plane, not per pair of triangles)
+    match = (np.abs(planes[:, None] - planes[None]) <= tolerance).all(-1)  # (t, t)
+    plane_of = np.full(len(planes), -1)
+    first = []
+    while (plane_of < 0).any():
+        i = int(np.argmax(plane_of < 0))
+        plane_of[(plane_of < 0) & match[i]] = len(first)
+        plane_of[i] = len(first)  # a degenerate (NaN) plane matches nothing, itself included
+        first.append(i)
+    return planes[first], plane_of.tolist()
