@@ -156,10 +156,14 @@ class TorchsimEnv(EnvBase):
         self.register_buffer("ctrl_low", ctrl_range[:, 0])
         self.register_buffer("ctrl_high", ctrl_range[:, 1])
         self._setup()
+        #: What adds to the task's observation, told where the env's state changes (``PixelObservation``: ``start``,
+        #: ``advance``, ``fields``, ``add_specs``, ``episode_state``): a pixel env's images (``pixel_obs``), or none.
+        self.observers = []
         self.pixel_obs = None
         if from_pixels:
             self.pixel_obs = PixelObservation(self, cameras, pixel_size, pixel_kind, pixel_state, frame_stack,
                                               render_compile, pixel_supersample, pixel_privileged_state)
+            self.observers.append(self.pixel_obs)
         elif pixel_privileged_state:
             raise ValueError(f"{type(self).__name__}: pixel_privileged_state needs from_pixels=True (without images "
                              "the observation is the full state already)")
@@ -168,8 +172,8 @@ class TorchsimEnv(EnvBase):
         self.task = self._sample_task(self.state)
         self._start_pool: State | None = None  # start states drawn ahead for restarts (_pooled_starts)
         self._start_pool_used = 0
-        if self.pixel_obs is not None:
-            self.pixel_obs.update(self.state)
+        for observer in self.observers:
+            observer.start(self.state)
         obs = self._observation(self.state, self._zero_ctrl())
         if obs.shape != (*self.batch_size, self.observation_size):
             raise RuntimeError(f"{type(self).__name__}: observation has shape {tuple(obs.shape)}, expected "
@@ -273,16 +277,8 @@ class TorchsimEnv(EnvBase):
         if self.success_distance is not None:
             self.observation_spec["goal_distance"] = Unbounded((*shape, 1), dtype=dtype, device=dev)
         self.action_spec = Bounded(-1.0, 1.0, (*shape, self.sys.nu), dtype=dtype, device=dev)
-        if self.pixel_obs is not None:
-            self.observation_spec["pixels"] = self.pixel_obs.spec()
-            size = self.pixel_obs.observation_size(self.observation_size)
-            if size is None:
-                del self.observation_spec["observation"]
-            else:
-                self.observation_spec["observation"] = Unbounded((*shape, size), dtype=dtype, device=dev)
-            if self.pixel_obs.privileged_state:
-                self.observation_spec["privileged_state"] = Unbounded((*shape, self.observation_size), dtype=dtype,
-                                                                      device=dev)
+        for observer in self.observers:
+            observer.add_specs(self.observation_spec, self.observation_size)
         self.reward_spec = Unbounded((*shape, 1), dtype=dtype, device=dev)
         flag = lambda: Categorical(2, (*shape, 1), dtype=torch.bool, device=dev)  # noqa: E731
         self.full_done_spec = Composite(done=flag(), terminated=flag(), truncated=flag(), shape=shape)
@@ -292,11 +288,10 @@ class TorchsimEnv(EnvBase):
         ``fields``."""
         if self.success_distance is not None:
             fields["goal_distance"] = self._goal_distance(state)[:, None]
-        if self.pixel_obs is not None:
-            return TensorDict(**self.pixel_obs.fields(self._observation(state, ctrl)), **fields,
-                              batch_size=self.batch_size, device=self.device)
-        return TensorDict(observation=self._observation(state, ctrl), **fields, batch_size=self.batch_size,
-                          device=self.device)
+        entries = {"observation": self._observation(state, ctrl)}
+        for observer in self.observers:
+            entries = observer.fields(entries)
+        return TensorDict(**entries, **fields, batch_size=self.batch_size, device=self.device)
 
     # ---------------------------------------------------------------------------------------------- public API
     def set_state(self, q: torch.Tensor, qd: torch.Tensor, task: torch.Tensor | None = None) -> torch.Tensor:
@@ -315,9 +310,8 @@ class TorchsimEnv(EnvBase):
             raise ValueError(f"task must have shape {(*self.batch_size, self.task_size)}, got {tuple(task.shape)}")
         self.task = task.to(device=self.device, dtype=self.sys.dtype)
         self.step_count.zero_()
-        if self.pixel_obs is not None:
-            self.pixel_obs.reset_stack()
-            self.pixel_obs.update(self.state)
+        for observer in self.observers:
+            observer.start(self.state)
         return self._observation(self.state, self._zero_ctrl())
 
     def set_physics(self, **scales) -> None:
@@ -373,8 +367,8 @@ class TorchsimEnv(EnvBase):
         saved = {"state": self.state._asdict(), "task": self.task, "step_count": self.step_count}
         if self._start_pool is not None:
             saved["start_pool"], saved["start_pool_used"] = self._start_pool._asdict(), self._start_pool_used
-        if self.pixel_obs is not None:
-            saved["frames"] = self.pixel_obs.frames
+        for observer in self.observers:  # a pixel env's frame stacks
+            saved.update(observer.episode_state())
         return saved
 
     def load_episode_state(self, saved: dict) -> None:
@@ -384,8 +378,8 @@ class TorchsimEnv(EnvBase):
         pool = saved.get("start_pool")
         self._start_pool = None if pool is None else State(**pool)
         self._start_pool_used = saved.get("start_pool_used", 0)
-        if self.pixel_obs is not None:
-            self.pixel_obs.frames = saved["frames"]
+        for observer in self.observers:
+            observer.load_episode_state(saved)
 
     @property
     def sys(self) -> "torchsim.System":
@@ -407,9 +401,8 @@ class TorchsimEnv(EnvBase):
                 self.step_count.copy_(torch.randint_like(self.step_count, self.episode_length))
             else:
                 self.step_count.zero_()
-            if self.pixel_obs is not None:
-                self.pixel_obs.reset_stack()
-                self.pixel_obs.update(self.state)
+            for observer in self.observers:
+                observer.start(self.state)
         else:
             # Start states for the flagged envs only: building them for every env cost a 2048-env Ant collector
             # step ~9 ms, more than its share of the physics, to restart a few envs.
@@ -418,8 +411,8 @@ class TorchsimEnv(EnvBase):
             self.state = State(*(old.index_copy(0, rows, new) for old, new in zip(self.state, fresh)))
             self.task = self.task.index_copy(0, rows, self._sample_task(fresh))
             self.step_count.index_fill_(0, rows, 0)
-            if self.pixel_obs is not None:
-                self.pixel_obs.update(self.state, rows=rows)
+            for observer in self.observers:
+                observer.start(self.state, rows=rows)
         no = torch.zeros((*self.batch_size, 1), dtype=torch.bool, device=self.device)
         return self._output(self.state, self._zero_ctrl(), done=no, terminated=no.clone(), truncated=no.clone())
 
@@ -478,9 +471,8 @@ class TorchsimEnv(EnvBase):
             state, task, steps, ctrl = self._restart(done, state, task, steps, ctrl)
         self.step_count.copy_(steps)
         self.state, self.task = state, task
-        if self.pixel_obs is not None:
-            native = self.__dict__.get("_torchrl_native_autoreset", False)
-            self.pixel_obs.update(state, restart=done if native else None)
+        for observer in self.observers:  # with native auto-reset, the finished envs' stacks restart
+            observer.advance(state, restart=done if self.__dict__.get("_torchrl_native_autoreset", False) else None)
         return self._output(state, ctrl, reward=reward[:, None].to(self.sys.dtype), done=done[:, None],
                             terminated=terminated[:, None], truncated=truncated[:, None])
 

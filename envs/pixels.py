@@ -24,7 +24,7 @@ import math
 from typing import Callable, NamedTuple
 
 import torch
-from torchrl.data import Bounded
+from torchrl.data import Bounded, Unbounded
 
 from torchsim.render import Camera, Scene, render
 
@@ -84,7 +84,11 @@ PIXEL_TASKS = {
 
 
 class PixelObservation:
-    """The image half of a pixel env's observation: the scene, the cameras, the image buffer and its spec."""
+    """The image half of a pixel env's observation: the scene, the cameras, the image buffer and its spec.
+
+    An observer of its env (``TorchsimEnv.observers``), which calls it where its state changes and where it emits:
+    ``add_specs`` once, ``start`` at resets (every env, or ``rows``), ``advance`` after each step, ``fields`` for
+    what the env emits, ``episode_state`` / ``load_episode_state`` with the env's running episodes."""
 
     def __init__(self, env, cameras=None, size=48, kind=None, state="full", frame_stack=1, compile=False,
                  supersample=1, privileged_state=False):
@@ -121,6 +125,35 @@ class PixelObservation:
         """Size of ``observation`` given the task's state observation size (None: no ``observation`` key)."""
         return {"full": state_size, "proprio": 0 if self.proprio is None else len(self.proprio), "none": None}[
             self.state]
+
+    def add_specs(self, spec, state_size: int) -> None:
+        """Add ``pixels`` to the env's observation ``spec`` (a Composite holding the task's ``observation``), resize
+        or remove ``observation`` as ``pixel_state`` says, and add ``privileged_state`` if asked for."""
+        observation = spec["observation"]
+        spec["pixels"] = self.spec()
+        size = self.observation_size(state_size)
+        if size is None:
+            del spec["observation"]
+        else:
+            spec["observation"] = Unbounded((*self.batch, size), dtype=observation.dtype, device=observation.device)
+        if self.privileged_state:
+            spec["privileged_state"] = observation.clone()
+
+    def start(self, state, rows: torch.Tensor | None = None) -> None:
+        """Episodes start: every env's (its stack restarts from ``state``'s frame), or those of ``rows`` only."""
+        if rows is None:
+            self.reset_stack()
+        self.update(state, rows=rows)
+
+    def advance(self, state, restart: torch.Tensor | None = None) -> None:
+        """After a step: push ``state``'s frame (restarting the stacks of the mask ``restart``)."""
+        self.update(state, restart=restart)
+
+    def episode_state(self) -> dict:
+        return {"frames": self.frames}
+
+    def load_episode_state(self, saved: dict) -> None:
+        self.frames = saved["frames"]
 
     def spec(self):
         shape = (*self.batch, self.frame_stack * self.channels, self.height, self.width)
@@ -169,10 +202,12 @@ class PixelObservation:
         """Forget the stacks: the next ``update`` without ``rows`` restarts every env's."""
         self.frames = None
 
-    def fields(self, observation: torch.Tensor) -> dict:
-        """The observation entries beside the caller's: ``pixels``, unless ``pixel_state="none"`` the task's state
-        ``observation`` or its proprioceptive columns, and with ``privileged_state`` the whole state vector."""
-        out = {"pixels": self.frames}
+    def fields(self, entries: dict) -> dict:
+        """The entries the env emits, from the task's (``observation``, the state vector, and ``goal_distance`` for
+        goal tasks): ``pixels``, unless ``pixel_state="none"`` the task's state ``observation`` or its
+        proprioceptive columns, and with ``privileged_state`` the whole state vector."""
+        observation = entries["observation"]
+        out = {**{k: v for k, v in entries.items() if k != "observation"}, "pixels": self.frames}
         if self.privileged_state:
             out["privileged_state"] = observation
         if self.state == "full":
