@@ -47,7 +47,7 @@ def child(overrides: list[str], seconds: float, eval_steps: int) -> dict:
     from tensordict.nn import set_interaction_type
     from torchrl.envs.utils import ExplorationType
 
-    from torchsim.algos.common import make_eval_env
+    from torchsim.algos.env_factory import make_eval_env
     from torchsim.algos.ppo import PPO
     from torchsim.algos.train import CONFIG_DIR, prepare
 

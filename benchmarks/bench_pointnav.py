@@ -26,7 +26,7 @@ import torch
 from hydra import compose, initialize_config_dir
 
 from _timing import median_rate
-from torchsim.algos.common import load_checkpoint
+from torchsim.algos.checkpoints import load_checkpoint
 from torchsim.algos.ppo import PPO
 from torchsim.algos.train import CONFIG_DIR, prepare
 

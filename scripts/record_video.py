@@ -73,7 +73,9 @@ def policy_rollout(checkpoint: str, steps: int | None):
     """``(qpos, dt, return, base env, env name)`` of one deterministic episode of a trained policy."""
     from omegaconf import OmegaConf
 
-    from torchsim.algos.common import evaluate, load_checkpoint, load_policy, make_env
+    from torchsim.algos.checkpoints import load_checkpoint, load_policy
+    from torchsim.algos.env_factory import make_env
+    from torchsim.algos.evaluation import evaluate
 
     ckpt = load_checkpoint(checkpoint)
     cfg = OmegaConf.create(ckpt["cfg"])
@@ -87,7 +89,7 @@ def bench(env, env_name: str, qpos: np.ndarray, dt: float, width: int, height: i
     """Frames/s of each renderer on the same trajectory: the frames alone (in this process; also per CPU-second of
     the process, all threads: MuJoCo's EGL is Mesa llvmpipe, multi-threaded), and end to end as a training run's
     ``policy.gif`` (``render_gif``: torchsim's in-process path vs MuJoCo's child process)."""
-    from torchsim.algos.common import render_gif
+    from torchsim.algos.outputs import render_gif
 
     n = len(qpos)
     draw_torchsim = lambda: render_frames_torchsim(env.mj_model, env.sys, qpos, width, height, compile=compile)

@@ -30,7 +30,8 @@ def load(checkpoint):
     """``(env, actor, env name)``: one env with the checkpoint's policy (deterministic), on the CPU."""
     from omegaconf import OmegaConf
 
-    from torchsim.algos.common import load_checkpoint, load_policy, make_env
+    from torchsim.algos.checkpoints import load_checkpoint, load_policy
+    from torchsim.algos.env_factory import make_env
 
     ckpt = load_checkpoint(checkpoint)
     cfg = OmegaConf.create(ckpt["cfg"])

@@ -16,7 +16,10 @@ import matplotlib
 import numpy as np
 from omegaconf import OmegaConf
 
-from torchsim.algos.common import evaluate, load_checkpoint, load_policy, make_env, video
+from torchsim.algos.checkpoints import load_checkpoint, load_policy
+from torchsim.algos.env_factory import make_env
+from torchsim.algos.evaluation import evaluate
+from torchsim.algos.outputs import video
 
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402

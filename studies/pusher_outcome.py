@@ -15,7 +15,8 @@ import torch
 from omegaconf import OmegaConf
 from torchrl.envs import ExplorationType, set_exploration_type
 
-from torchsim.algos.common import load_checkpoint, load_policy, make_env
+from torchsim.algos.checkpoints import load_checkpoint, load_policy
+from torchsim.algos.env_factory import make_env
 
 
 def distances(env) -> tuple[torch.Tensor, torch.Tensor]:

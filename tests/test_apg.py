@@ -10,7 +10,7 @@ from torchrl.envs import Compose, ExplorationType, RewardSum, StepCounter, Trans
 
 import torchsim.envs
 from torchsim.algos.apg import Rollout, policy_net
-from torchsim.algos.common import make_env
+from torchsim.algos.env_factory import make_env
 from torchsim.algos.normalization import RunningNorm
 from torchsim.algos.networks import make_actor
 from torchsim.algos.distributed import Ranks

@@ -11,7 +11,7 @@ from torchrl.modules import set_recurrent_mode
 
 from test_nav_policy import SMALL
 from test_train import config
-from torchsim.algos.common import make_env
+from torchsim.algos.env_factory import make_env
 from torchsim.algos.evaluate import main as evaluate_main
 from torchsim.algos.networks import make_actor, make_value
 from torchsim.algos.ppo import PPO

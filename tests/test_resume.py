@@ -11,7 +11,8 @@ import torch
 from tiny_runs import tiny_ppo
 
 import torchsim.envs
-from torchsim.algos.common import Run, load_checkpoint
+from torchsim.algos.checkpoints import load_checkpoint
+from torchsim.algos.common import Run
 from torchsim.algos.distributed import Ranks
 from torchsim.algos.ppo import PPO
 from torchsim.algos.train import run

@@ -13,9 +13,10 @@ from hydra import compose, initialize_config_dir
 from omegaconf import OmegaConf
 from tensordict import TensorDict
 
-from torchsim.algos.common import Run, TrainingDiverged, load_checkpoint
+from torchsim.algos.checkpoints import load_checkpoint
+from torchsim.algos.common import Run, TrainingDiverged
 from torchsim.algos.distributed import Ranks
-from torchsim.algos.common import compiles
+from torchsim.algos.env_factory import compiles
 from torchsim.algos.train import CONFIG_DIR, fresh_run_dir, run, write_config
 from tiny_runs import TINY_PPO, tiny_ppo
 

@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from torchsim.algos import evaluate as evaluate_cli
-from torchsim.algos.common import load_checkpoint
+from torchsim.algos.checkpoints import load_checkpoint
 from torchsim.algos.train import run
 from tiny_runs import tiny_ppo
 

@@ -10,7 +10,10 @@ from torchrl.envs import ExplorationType, set_exploration_type
 from torchrl.envs.transforms import VecNormV2
 from torchrl.envs.utils import RandomPolicy
 
-from torchsim.algos.common import TrainingDiverged, evaluate, load_policy, make_env
+from torchsim.algos.checkpoints import load_policy
+from torchsim.algos.common import TrainingDiverged
+from torchsim.algos.env_factory import make_env
+from torchsim.algos.evaluation import evaluate
 from torchsim.algos.normalization import RunningNorm
 from torchsim.algos.networks import make_actor
 from torchsim.algos.train import CONFIG_DIR, run
