@@ -108,7 +108,8 @@ def render_frames_torchsim(model: mujoco.MjModel, system, qpos: np.ndarray, widt
         compile: ``torch.compile`` the hit tests (:func:`torchsim.render.render`; a few seconds of compilation per
             shape type on first use in a machine, cached on disk by inductor).
 
-    Raises :class:`torchsim.render.UnsupportedGeomError` for models with height fields (meshes are drawn).
+    Raises :class:`torchsim.render.UnsupportedGeomError` for models with SDF geoms (meshes and height fields are
+    drawn).
     """
     from torchsim.render import Scene, render
     from torchsim.render.viewer import trajectory
