@@ -17,6 +17,7 @@ import os
 os.environ.setdefault("GOMP_SPINCOUNT", "1000")
 
 from torchsim import kinematics  # noqa: E402
+from torchsim.contact_forces import ContactForces, contact_forces  # noqa: E402
 from torchsim.io_mjcf import UnsupportedMJCFError, load_mjcf  # noqa: E402
 from torchsim.io_urdf import UnsupportedURDFError, load_urdf  # noqa: E402
 from torchsim.kinematics import mj_body_poses  # noqa: E402
@@ -27,4 +28,5 @@ from torchsim.execution import Stepper  # noqa: E402
 from torchsim.system import System  # noqa: E402
 
 __all__ = ["load_mjcf", "load_urdf", "UnsupportedURDFError", "init", "step", "Stepper", "State", "System",
-           "UnsupportedMJCFError", "mj_body_poses", "kinematics", "sensor", "sensordata", "sensors_by_name"]
+           "UnsupportedMJCFError", "mj_body_poses", "kinematics", "sensor", "sensordata", "sensors_by_name",
+           "contact_forces", "ContactForces"]

@@ -130,6 +130,14 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tenso
 
 def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, rot: torch.Tensor | None = None,
                      start: Bodies | None = None, h: float | None = None) -> Bodies:
+    """``bodies`` after the contact impulses of :func:`contact_impulse_terms`."""
+    con, r_a, r_b, p_lin, scale_a, scale_b = contact_impulse_terms(sys, bodies, inv, rot, start, h)
+    return rigid.apply_pair_velocity(bodies, inv, con.body_a, con.body_b, r_a, r_b, p_lin, torch.zeros_like(p_lin),
+                                     scale_a, scale_b)
+
+
+def contact_impulse_terms(sys: System, bodies: Bodies, inv: rigid.InverseInertia, rot: torch.Tensor | None = None,
+                          start: Bodies | None = None, h: float | None = None):
     """Velocity impulses stopping approach and separating at ``depth / (e contact_timeconst)``, or with
     ``sys.contact_soft`` MuJoCo's soft normal (``torchsim.soft_contacts``, from the bodies at the substep's
     ``start`` over ``h``); Coulomb-capped friction. ``rot``: the bodies' rotation matrices, if at hand
@@ -140,7 +148,9 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, rot
     ``t = tau``. With ``depth / tau`` (2.7x that) a sphere started 10 cm deep jumped 1.18 m where MuJoCo's rises
     0.11 m, and 14% of the ant's reset poses launched the torso above its 1 m termination height (MuJoCo: 5%).
 
-    Per contact, vectors are ``(3, C, B)`` and scalars ``(C, B)``."""
+    Per contact, vectors are ``(3, C, B)`` and scalars ``(C, B)``. Returns the contacts, the arms ``r_a, r_b``
+    from the bodies' COMs, each point's impulse ``p_lin`` on body a (body b takes ``-p_lin``) and the shares
+    ``scale_a, scale_b`` (a float or ``(C, B)``) each body takes of it."""
     con = contacts(sys, bodies, rot)
     a, b = con.body_a, con.body_b
     r_a, r_b, v_rel = rigid.contact_arms(bodies, a, b, con.pos)
@@ -161,8 +171,7 @@ def contact_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, rot
     tangent = v_t / speed_t
     w_t = rigid.pair_inverse_mass(inv, a, b, r_a, r_b, tangent)
     j_t = torch.minimum(stop_share * speed_t / w_t, con.friction * j_n)
-    p_lin = j_n * con.normal - j_t * tangent
-    return rigid.apply_pair_velocity(bodies, inv, a, b, r_a, r_b, p_lin, torch.zeros_like(p_lin), scale_a, scale_b)
+    return con, r_a, r_b, j_n * con.normal - j_t * tangent, scale_a, scale_b
 
 
 def dof_force_wrench(sys: System, bodies: Bodies, fr: JointFrames, axes: torch.Tensor, q: torch.Tensor,
@@ -209,6 +218,24 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     """Forces (actuators, joint springs) -> velocities (armature, damping, limits) -> contact impulses (on
     armature-loaded links) -> positions. Lanes ``bodies``, ``ctrl (U, B)``; ``terms`` from :func:`step_terms` at
     the step's start."""
+    after, inv = free_velocities(sys, bodies, ctrl, terms, h)
+    if sys.contact_groups:
+        # poses not yet moved: the substep's rot
+        after = contact_impulses(sys, after, terms.loaded, inv.rot, bodies, h)
+    return integrator.integrate_positions(after, h)
+
+
+def contact_forces(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h: float):
+    """The contacts of lanes ``bodies`` and the force ``(3, C, B)`` [N] each point's impulse puts on its body a over
+    the first substep from them: what :func:`substep` applies, divided by ``h``."""
+    after, inv = free_velocities(sys, bodies, ctrl, terms, h)
+    con, _, _, p_lin, scale_a, _ = contact_impulse_terms(sys, after, terms.loaded, inv.rot, bodies, h)
+    return con, scale_a * p_lin / h
+
+
+def free_velocities(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h: float):
+    """The substep's velocities before contacts (forces, then armature, damping and limits) and the inverse
+    inertias at its poses."""
     inv = rigid.inverse_inertia(sys, bodies.x_quat, terms.inv_inertia_body)
     fr = joint_frames(sys, bodies, all_slots=False, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
@@ -227,10 +254,7 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
         force, torque = force + weld_force, torque + weld_torque
     after = integrator.velocity_update(sys, bodies, inv, force + spring_force, torque + spring_torque, h)
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h, q)
-    if sys.contact_groups:
-        # poses not yet moved: the substep's rot
-        after = contact_impulses(sys, after, terms.loaded, inv.rot, bodies, h)
-    return integrator.integrate_positions(after, h)
+    return after, inv
 
 
-METHOD = Method("spring", step_terms, substep, default_substep_timestep=5e-4)
+METHOD = Method("spring", step_terms, substep, default_substep_timestep=5e-4, contact_forces=contact_forces)
