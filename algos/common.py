@@ -23,7 +23,8 @@ from torchsim.algos.checkpoints import (RESUMABLE_KEYS, check_resumable, config_
 from torchsim.algos.distributed import Ranks
 from torchsim.algos.env_factory import compiles, make_env, make_eval_env, obs_norm  # noqa: F401
 from torchsim.algos.evaluation import Evaluation, evaluate  # noqa: F401
-from torchsim.algos.outputs import plot_curves, render_gif, video  # noqa: F401
+from torchsim.algos.outputs import plot_curves, video  # noqa: F401
+from torchsim.algos.physics_task import render_gif  # noqa: F401
 
 #: Importable from here as before the split (tests, studies, scripts); new code imports them from their modules.
 __all__ = ["RESUMABLE_KEYS", "check_resumable", "config_changes", "load_checkpoint", "load_policy", "restore_rng",

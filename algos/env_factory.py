@@ -8,17 +8,10 @@ from torchrl.envs import Compose, RewardSum, StepCounter, TransformedEnv
 from torchrl.envs.transforms import RewardScaling
 
 from torchsim.algos import tasks
+from torchsim.algos.settings import compiles
 from torchsim.algos.normalization import RunningNorm
 
 log = logging.getLogger("torchsim.train")
-
-
-def compiles(cfg: DictConfig, part: str) -> bool:
-    """Whether ``part`` (``"physics"``: the engine's compiled step; ``"loss"``: ``torch.compile`` of the loss) runs
-    compiled: ``cfg.compile_<part>``, or where that is null or absent (checkpoints written before the split) the
-    shorthand ``cfg.compile``."""
-    value = cfg.get(f"compile_{part}")
-    return bool(cfg.get("compile", True) if value is None else value)
 
 
 def make_env(cfg: DictConfig, num_envs: int, device, train: bool = False, like: TransformedEnv | None = None

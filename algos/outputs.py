@@ -2,16 +2,11 @@
 recorded trajectory: :mod:`torchsim.algos.tasks`; the MJCF tasks' through :func:`render_gif`)."""
 
 import logging
-import os
 import pathlib
-import subprocess
-import sys
-import warnings
 
 import numpy as np
 from torchrl.envs import TransformedEnv
 
-import torchsim.envs
 from torchsim.algos import tasks
 
 log = logging.getLogger("torchsim.train")
@@ -21,34 +16,6 @@ def video(env: TransformedEnv, env_name: str, trajectory, path: pathlib.Path) ->
     """Write env 0's recorded ``trajectory`` (``evaluate(..., record=True)``) as the GIF ``path``, as its task
     module does: a navigation env's map and depth view (10 frames/s), a physics env's bodies (``render_gif``)."""
     tasks.for_env(env).video(env, env_name, trajectory, path)
-
-
-def render_gif(env_name: str, qpos: np.ndarray, dt: float, path: pathlib.Path, renderer: str = "torchsim",
-               width: int = 320, height: int = 240) -> None:
-    """Write a ``width`` x ``height`` GIF of ``qpos``. ``renderer="torchsim"`` (default): torchsim's own renderer,
-    in this process (no GL context; ``torchsim.envs.video.render_frames_torchsim``); models it cannot draw (height
-    fields) fall back to ``"mujoco"``: MuJoCo's renderer in a child process, as MuJoCo picks its GL backend when first
-    imported (``MUJOCO_GL``), which in this process happened before we could choose EGL."""
-    path = pathlib.Path(path)
-    if renderer == "torchsim":
-        from torchsim.envs.video import render_frames_torchsim, save_gif
-        from torchsim.render import UnsupportedGeomError
-
-        task = torchsim.envs.make(env_name)
-        try:
-            save_gif(render_frames_torchsim(task.mj_model, task.sys, qpos, width, height), path, fps=1.0 / dt)
-            log.info(f"video: {path}")
-            return
-        except UnsupportedGeomError as err:
-            log.info(f"torchsim's renderer cannot draw {env_name} ({err}); rendering with MuJoCo")
-    np.save(path.with_suffix(".npy"), qpos)
-    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
-    proc = subprocess.run([sys.executable, "-m", "torchsim.algos.render", env_name, str(path.with_suffix(".npy")),
-                           str(path), str(1.0 / dt), str(width), str(height)], env=env, capture_output=True, text=True)
-    if proc.returncode:
-        warnings.warn(f"no video ({proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else 'render failed'})")
-    else:
-        log.info(f"video: {path}")
 
 
 def plot_curves(history: dict, path, title: str) -> None:

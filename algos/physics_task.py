@@ -3,14 +3,22 @@
 or ``mujoco``; the physics options ``contact_model``, ``method``, ``substeps``; staggered first episodes and the
 captured step for training), joint positions as the recorded trajectory and a rendered GIF as the video."""
 
+import logging
+import os
 import pathlib
+import subprocess
+import sys
+import warnings
 
+import numpy as np
 import torch
 from omegaconf import DictConfig
 
 import torchsim.envs
-from torchsim.algos import env_factory  # its compiles(); env_factory imports this module through tasks
+from torchsim.algos.settings import compiles
 from torchsim.execution.mujoco import MujocoStepper
+
+log = logging.getLogger("torchsim.train")
 
 #: The env names this module serves: every other one (:mod:`torchsim.algos.tasks` asks it last).
 NAMES = None
@@ -40,7 +48,7 @@ def make_base(cfg: DictConfig, num_envs: int, device, train: bool, like=None):
         probe = torchsim.envs.make(cfg.env.name, device=device, contact_model=contact_model)  # System, MuJoCo model
         stepper = MujocoStepper(probe.base_sys, probe.mj_model)
     else:
-        stepper = "auto" if env_factory.compiles(cfg, "physics") else "eager"
+        stepper = "auto" if compiles(cfg, "physics") else "eager"
     base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length,
                               stagger_episodes=train and cfg.stagger_episodes, stepper=stepper,
                               **(dict(contact_model=contact_model, method=method, substeps=substeps)
@@ -67,7 +75,33 @@ def trajectory(snapshots: list):
 
 
 def video(env, env_name: str, trajectory, path: pathlib.Path) -> None:
-    """The recorded joint positions rendered as a GIF (``render_gif``)."""
-    from torchsim.algos.outputs import render_gif
-
+    """The recorded joint positions rendered as a GIF (:func:`render_gif`)."""
     render_gif(env_name, trajectory, env.base_env.dt, path)
+
+
+def render_gif(env_name: str, qpos: np.ndarray, dt: float, path: pathlib.Path, renderer: str = "torchsim",
+               width: int = 320, height: int = 240) -> None:
+    """Write a ``width`` x ``height`` GIF of ``qpos``. ``renderer="torchsim"`` (default): torchsim's own renderer,
+    in this process (no GL context; ``torchsim.envs.video.render_frames_torchsim``); models it cannot draw (height
+    fields) fall back to ``"mujoco"``: MuJoCo's renderer in a child process, as MuJoCo picks its GL backend when first
+    imported (``MUJOCO_GL``), which in this process happened before we could choose EGL."""
+    path = pathlib.Path(path)
+    if renderer == "torchsim":
+        from torchsim.envs.video import render_frames_torchsim, save_gif
+        from torchsim.render import UnsupportedGeomError
+
+        task = torchsim.envs.make(env_name)
+        try:
+            save_gif(render_frames_torchsim(task.mj_model, task.sys, qpos, width, height), path, fps=1.0 / dt)
+            log.info(f"video: {path}")
+            return
+        except UnsupportedGeomError as err:
+            log.info(f"torchsim's renderer cannot draw {env_name} ({err}); rendering with MuJoCo")
+    np.save(path.with_suffix(".npy"), qpos)
+    env = {**os.environ, "MUJOCO_GL": os.environ.get("MUJOCO_GL", "egl")}
+    proc = subprocess.run([sys.executable, "-m", "torchsim.algos.render", env_name, str(path.with_suffix(".npy")),
+                           str(path), str(1.0 / dt), str(width), str(height)], env=env, capture_output=True, text=True)
+    if proc.returncode:
+        warnings.warn(f"no video ({proc.stderr.strip().splitlines()[-1] if proc.stderr.strip() else 'render failed'})")
+    else:
+        log.info(f"video: {path}")

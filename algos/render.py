@@ -2,7 +2,7 @@
 ``python -m torchsim.algos.render ENV QPOS.npy OUT.gif FPS [WIDTH HEIGHT]`` (default 480x360).
 
 A separate process because MuJoCo chooses its GL backend at import (set ``MUJOCO_GL=egl`` for headless machines);
-:func:`torchsim.algos.outputs.render_gif` runs it for models torchsim's own renderer cannot draw (meshes), or when
+:func:`torchsim.algos.physics_task.render_gif` runs it for models torchsim's own renderer cannot draw (meshes), or when
 asked to (``renderer="mujoco"``).
 """
 

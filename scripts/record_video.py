@@ -89,7 +89,7 @@ def bench(env, env_name: str, qpos: np.ndarray, dt: float, width: int, height: i
     """Frames/s of each renderer on the same trajectory: the frames alone (in this process; also per CPU-second of
     the process, all threads: MuJoCo's EGL is Mesa llvmpipe, multi-threaded), and end to end as a training run's
     ``policy.gif`` (``render_gif``: torchsim's in-process path vs MuJoCo's child process)."""
-    from torchsim.algos.outputs import render_gif
+    from torchsim.algos.physics_task import render_gif
 
     n = len(qpos)
     draw_torchsim = lambda: render_frames_torchsim(env.mj_model, env.sys, qpos, width, height, compile=compile)
