@@ -133,7 +133,7 @@ COMPUTED = ("jointpos", "jointvel", "ballquat", "ballangvel", "tendonpos", "tend
             "frameyaxis", "framezaxis", "framelinvel", "frameangvel", "subtreecom", "subtreelinvel", "subtreeangmom",
             "gyro", "velocimeter", "magnetometer", "jointlimitpos", "jointlimitvel", "tendonlimitpos",
             "tendonlimitvel", "e_potential", "e_kinetic")
-NOT_COMPUTED = {"imu_acc": "accelerometer", "tip_touch": "touch", "time": "clock", "late": "jointpos.*delay"}
+NOT_COMPUTED = {"imu_acc": "accelerometer", "time": "clock", "late": "jointpos.*delay"}
 ENVS = 4
 #: The shoulder and slide coordinates of the 4 envs: within the margin of the shoulder's lower and upper limits
 #: (range -1..1 rad, margin 0.4) and of the slide's upper and lower limits (range -0.2..0.2 m, margin 0.05).

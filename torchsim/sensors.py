@@ -19,15 +19,17 @@ Which types are computed, and why the others are not: ``torchsim.io_mjcf.sensors
 import torch
 
 from torchsim import activation, actuators, lanes, spatial, tendon_paths, tendons
+from torchsim.contact_forces import ContactForces, contact_forces
 from torchsim.io_mjcf.sensors import FRAME_KINDS, SUBTREE_KINDS
 from torchsim.io_mjcf.subset import UnsupportedMJCFError
 from torchsim.kinematics import _addresses, with_world
 from torchsim.pipeline import check, to_lanes_state
+from torchsim.render import raycast
 from torchsim.state import State
 from torchsim.system import SensorGroup, System
 
 #: The sensor types that read actuator forces, which depend on the controls.
-FORCE_KINDS = ("actuatorfrc", "jointactuatorfrc", "tendonactuatorfrc")
+FORCE_KINDS = ("actuatorfrc", "jointactuatorfrc", "tendonactuatorfrc", "touch")
 AXIS_COLUMN = {"framexaxis": 0, "frameyaxis": 1, "framezaxis": 2}
 
 
@@ -140,14 +142,14 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
     needs_ctrl = [g for g in groups if g.kind in FORCE_KINDS]
     if needs_ctrl:
         if ctrl is None:
-            raise ValueError(f"the {needs_ctrl[0].kind} sensors read actuator forces, which depend on the "
-                             "controls: pass ctrl (B, nu)")
+            raise ValueError(f"the {needs_ctrl[0].kind} sensors read forces that depend on the controls: pass "
+                             "ctrl (B, nu)")
         check(sys, "ctrl", ctrl, sys.nu, batch)
         driving = lanes.to_lanes(ctrl)
         if sys.na:  # static: activated actuators are driven by their activations
             driving = activation.drive(sys, driving, lanes.to_lanes(state.act))[0]
         force = actuators.forces(sys, *actuators.coordinates(sys, q_dof, qd_dof, length, velocity), driving)
-    frames = _Frames(sys, state) if any(g.kind in FRAME_KINDS + SUBTREE_KINDS for g in groups) else None
+    frames = _Frames(sys, state) if any(g.kind in FRAME_KINDS + SUBTREE_KINDS + ("touch",) for g in groups) else None
     data = q.new_full((sys.nsensordata, batch), float("nan"))
     for group in groups:
         kind = group.kind
@@ -183,11 +185,53 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
             values = _kinetic_energy(sys, state, qd_dof).expand(1, group.obj.shape[0], batch)
         elif kind in SUBTREE_KINDS:
             values = _subtree_values(sys, frames, group)
+        elif kind == "touch":
+            values = _touch(sys, contact_forces(sys, state, ctrl), frames, group)
         else:
             values = _frame_values(sys, frames, group)
         data = data.index_copy(0, _addresses(group.adr, values.shape[0]), values.flatten(0, 1))
     cutoff = lanes.param(sys.sensor_cutoff, 1)
     return torch.minimum(torch.maximum(data, -cutoff), cutoff)
+
+
+def _touch(sys: System, forces: ContactForces, frames: _Frames, group: SensorGroup) -> torch.Tensor:
+    """MuJoCo's touch sensors ``(1, S, B)``: the normal forces of the contacts on each site's body whose point lies
+    in the site's zone, or whose ray from the point away from that body meets it (as ``mj_sensorAcc``)."""
+    pos, normal, force = (lanes.to_lanes(x, 1).unsqueeze(1) for x in (forces.pos, forces.normal, forces.force))
+    push = spatial.dot(force, normal)  # (1, C, B): the normal force on body a, > 0 pushing
+    world = sys.num_bodies  # contact_forces names the world -1, the sensor frames by its ext index
+    body_a, body_b = (torch.where(b < 0, world, b) for b in (forces.body_a, forces.body_b))
+    site_pos, site_quat, _, _ = (x.unsqueeze(2) for x in frames.at(group.obj))  # (3|4, S, 1, B)
+    site_body = sys.sensor_frame_body.index_select(0, group.obj)[:, None]  # (S, 1)
+    on_a, on_b = site_body == body_a, site_body == body_b  # (S, C)
+    away = torch.where(on_a, -1.0, 1.0).to(normal.dtype)[..., None] * normal  # normal points from body b to a
+    origin = spatial.quat_rotate_inv(site_quat, pos - site_pos)  # (3, S, C, B), in the site's frame
+    direction = spatial.quat_rotate_inv(site_quat, away.expand_as(origin))
+    size = lanes.param(sys.sensor_touch_size.index_select(0, group.ref), 1, 1).unsqueeze(-1)  # (3, S, 1, 1)
+    shape = sys.sensor_touch_shape.index_select(0, group.ref)[:, None, None]  # (S, 1, 1)
+    in_zone = torch.zeros_like(push, dtype=torch.bool).expand_as(origin[0])
+    for name in ("sphere", "capsule", "ellipsoid", "cylinder", "box"):
+        if bool((shape == raycast.CODE[name]).any()):
+            meets = _inside(name, origin, size) | torch.isfinite(raycast.HIT[name](origin, direction, size, 0.0,
+                                                                                  float("inf")))
+            in_zone = in_zone | ((shape == raycast.CODE[name]) & meets)
+    counted = (on_a | on_b)[..., None] & in_zone & forces.active.T[None] & (push > 0)
+    return torch.where(counted, push, 0.0).sum(-2)[None]
+
+
+def _inside(name: str, o: torch.Tensor, size: torch.Tensor) -> torch.Tensor:
+    """Whether local points ``o (3, ...)`` lie in a site of shape ``name`` and MuJoCo ``size (3, ...)``."""
+    if name == "sphere":
+        return spatial.dot(o, o) <= size[0] ** 2
+    if name == "ellipsoid":
+        return ((o / size) ** 2).sum(0) <= 1.0
+    if name == "box":
+        return (o.abs() <= size).all(0)
+    radial = o[0] ** 2 + o[1] ** 2
+    if name == "cylinder":
+        return (radial <= size[0] ** 2) & (o[2].abs() <= size[1])
+    beyond = (o[2].abs() - size[1]).clamp_min(0.0)  # capsule: the distance to its segment
+    return radial + beyond ** 2 <= size[0] ** 2
 
 
 def _limit_values(position: bool, x: torch.Tensor, rate: torch.Tensor, bounds: torch.Tensor, margin: torch.Tensor,

@@ -57,9 +57,10 @@ class SensorGroup(NamedTuple):
         adr: (S,) each sensor's first address in ``sensordata``.
         obj: (S,) what each reads, by kind: a qpos address (``jointpos``, ``ballquat``), a qvel address
             (``jointvel``, ``ballangvel``), a tendon, an actuator, a dof (``jointactuatorfrc``), a sensor frame
-            (frame sensors, ``gyro``, ``velocimeter``, ``magnetometer``) or a subtree row (``subtreecom``,
-            ``subtreelinvel``, ``subtreeangmom``).
-        ref: (S,) the sensor frame of a frame sensor's reference (0, the world, where it has none); -1 for others.
+            (frame sensors, ``gyro``, ``velocimeter``, ``magnetometer``; a ``touch`` sensor's site) or a subtree
+            row (``subtreecom``, ``subtreelinvel``, ``subtreeangmom``).
+        ref: (S,) the sensor frame of a frame sensor's reference (0, the world, where it has none); a touch
+            sensor's zone (``System.sensor_touch_size``); -1 for others.
     """
 
     kind: str
@@ -241,6 +242,8 @@ class System:
         sensor_magnetic: (3,) MuJoCo's ``magnetic`` field, world frame.  sensor_cutoff: (nsensordata,) MuJoCo's
         ``cutoff`` clamping each real-valued slot to ``[-cutoff, cutoff]`` (inf where none).
         sensor_static_potential: () [J] the gravitational potential energy of the bodies fused into the world.
+        Touch zones, one per touch sensor (its group's ``ref``): sensor_touch_size (T, 3) the site's MuJoCo size
+        [m], sensor_touch_shape (T,) its shape's code in ``torchsim.render.raycast.CODE``.
     MuJoCo bodies (for poses of fused bodies, e.g. rendering): mjbody_body (nbody,) ext index;
         mjbody_pos, mjbody_quat: frame offset of each MuJoCo body in its fused body's frame.
     """
@@ -456,6 +459,8 @@ class System:
     sensor_magnetic: torch.Tensor
     sensor_cutoff: torch.Tensor
     sensor_static_potential: torch.Tensor
+    sensor_touch_size: torch.Tensor
+    sensor_touch_shape: torch.Tensor
     # MuJoCo body frames
     mjbody_body: torch.Tensor
     mjbody_pos: torch.Tensor

@@ -4,8 +4,8 @@ MuJoCo's ``sensordata``, grouped by type for ``torchsim.sensors``.
 Sensors read the State: joint, tendon and actuator positions and velocities, frame poses and velocities of bodies,
 geoms, sites and (fixed) cameras, subtree centres of mass, their velocities and angular momenta, gyros,
 velocimeters and magnetometers, joint and tendon limits, potential and kinetic energy, and, given the controls,
-actuator forces. Sensors that need accelerations or contact and constraint forces (``accelerometer``, ``touch``,
-``force``, ``torque``, ``framelinacc``, ...), the simulation time (``clock``) or a history (``delay``,
+actuator forces and touch (``torchsim.contact_forces``). Sensors that need accelerations or constraint forces
+(``accelerometer``, ``force``, ``torque``, ``framelinacc``, ...), the simulation time (``clock``) or a history (``delay``,
 ``interval``), and those not implemented yet (``rangefinder``, ``camprojection``, ``insidesite``, ``distance``,
 ``normal``, ``fromto``; :data:`WHY`), are kept in the layout but not computed: one warning names them, their
 ``sensordata`` slots read NaN and reading one by name raises. ``cutoff`` clamps as in MuJoCo; ``noise`` is
@@ -42,7 +42,7 @@ KIND = {int(t): n for t, n in {
     Sens.mjSENS_MAGNETOMETER: "magnetometer", Sens.mjSENS_JOINTLIMITPOS: "jointlimitpos",
     Sens.mjSENS_JOINTLIMITVEL: "jointlimitvel", Sens.mjSENS_TENDONLIMITPOS: "tendonlimitpos",
     Sens.mjSENS_TENDONLIMITVEL: "tendonlimitvel", Sens.mjSENS_E_POTENTIAL: "e_potential",
-    Sens.mjSENS_E_KINETIC: "e_kinetic",
+    Sens.mjSENS_E_KINETIC: "e_kinetic", Sens.mjSENS_TOUCH: "touch",
 }.items()}
 #: MJCF names of types not computed whose enum name differs.
 ELEMENT = {int(Sens.mjSENS_GEOMDIST): "distance", int(Sens.mjSENS_GEOMNORMAL): "normal",
@@ -57,6 +57,10 @@ SUBTREE_KINDS = ("subtreecom", "subtreelinvel", "subtreeangmom")
 LIMIT_KINDS = ("jointlimitpos", "jointlimitvel", "tendonlimitpos", "tendonlimitvel")
 ENERGY_KINDS = ("e_potential", "e_kinetic")
 ACTUATOR_KINDS = ("actuatorpos", "actuatorvel", "actuatorfrc", "jointactuatorfrc", "tendonactuatorfrc")
+#: A touch sensor's site shape (``mjtGeom``) -> its code in ``torchsim.render.raycast.CODE`` (the ray tests).
+TOUCH_SHAPES = {int(mujoco.mjtGeom.mjGEOM_SPHERE): 1, int(mujoco.mjtGeom.mjGEOM_CAPSULE): 2,
+                int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): 3, int(mujoco.mjtGeom.mjGEOM_CYLINDER): 4,
+                int(mujoco.mjtGeom.mjGEOM_BOX): 5}
 #: The MjModel field prefix of each object type frame sensors read besides bodies.
 PREFIX = {int(Obj.mjOBJ_GEOM): "geom", int(Obj.mjOBJ_SITE): "site", int(Obj.mjOBJ_CAMERA): "cam"}
 #: Why the other sensor types are not computed.
@@ -65,7 +69,7 @@ _FORCES = "it needs contact or constraint forces, which the State does not hold"
 _NOT_YET = "it is not implemented yet (the State holds what it needs)"
 WHY = {int(t): why for t, why in {
     Sens.mjSENS_ACCELEROMETER: _ACCELERATIONS, Sens.mjSENS_FRAMELINACC: _ACCELERATIONS,
-    Sens.mjSENS_FRAMEANGACC: _ACCELERATIONS, Sens.mjSENS_TOUCH: _FORCES, Sens.mjSENS_FORCE: _FORCES,
+    Sens.mjSENS_FRAMEANGACC: _ACCELERATIONS, Sens.mjSENS_FORCE: _FORCES,
     Sens.mjSENS_TORQUE: _FORCES, Sens.mjSENS_CONTACT: _FORCES, Sens.mjSENS_TACTILE: _FORCES,
     Sens.mjSENS_JOINTLIMITFRC: _FORCES, Sens.mjSENS_TENDONLIMITFRC: _FORCES,
     Sens.mjSENS_CAMPROJECTION: _NOT_YET, Sens.mjSENS_INSIDESITE: _NOT_YET,
@@ -95,6 +99,7 @@ def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
     """The System's sensor fields (``System`` documents them); ``jnt_dof``: MuJoCo joint id -> torchsim dof."""
     frames = _FrameTable(fused.index[0])
     subtrees = {}  # MuJoCo body -> subtree row
+    touch_zones = []  # (site size, shape code) of each touch sensor
     groups = defaultdict(list)  # kind -> [(adr, obj, ref)]
     skipped = []
     for i in range(m.nsensor):
@@ -116,6 +121,9 @@ def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
             row = (jnt_dof[obj], -1)
         elif kind in SUBTREE_KINDS:
             row = (subtrees.setdefault(obj, len(subtrees)), -1)
+        elif kind == "touch":  # its site's frame and its row of the touch zones
+            row = (_frame(m, fused, frames, obj_type, obj), len(touch_zones))
+            touch_zones.append((m.site_size[obj].copy(), TOUCH_SHAPES[int(m.site_type[obj])]))
         elif kind in ENERGY_KINDS:  # the whole model's
             row = (0, -1)
         else:  # a tendon or actuator sensor
@@ -146,6 +154,8 @@ def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
         sensor_subtree_inertia=torch.as_tensor(np.array([t.inertia for t in terms], dtype=float).reshape(-1, 3)),
         sensor_magnetic=torch.as_tensor(m.opt.magnetic.copy()), sensor_cutoff=torch.as_tensor(cutoff),
         sensor_static_potential=torch.tensor(_static_potential(m, fused), dtype=torch.float64),
+        sensor_touch_size=torch.as_tensor(np.array([z[0] for z in touch_zones], dtype=float).reshape(-1, 3)),
+        sensor_touch_shape=torch.as_tensor(np.array([z[1] for z in touch_zones], dtype=np.int64)),
     )
 
 
@@ -163,6 +173,8 @@ def _not_computed(m: mujoco.MjModel, i: int, kind: str | None) -> str:
                for t, o in objects):
             return "its camera is not fixed to its body (mode)"
         bodies = [_body(m, t, o) for t, o in objects]
+    elif kind == "touch":
+        bodies = [_body(m, obj_type, obj)]
     else:
         bodies = _subtree_bodies(m, obj) if kind in SUBTREE_KINDS else []
     if any(m.body_mocapid[b] >= 0 for b in bodies):  # fused into the world, they would read the model's pose
