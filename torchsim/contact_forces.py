@@ -28,7 +28,9 @@ class ContactForces(NamedTuple):
         normal: (B, C, 3) unit normal from body b towards body a.
         depth: (B, C) penetration [m]; the point pushes where it is positive.
         active: (B, C) bool, ``depth > 0``.
-        force: (B, C, 3) world-frame force on body a [N] (body b takes its opposite): normal push plus friction.
+        force: (B, C, 3) world-frame force on body a [N]: normal push plus friction. Body b takes its opposite,
+            but for the impulse contact model's per-body averaging, which can share a point's impulse unequally
+            between two moving bodies (``methods.spring.contact_impulse_terms``).
         body_a, body_b: (C,) the bodies' indices in the State's body order (``-1``: the static world).
     """
 
@@ -52,7 +54,7 @@ def contact_forces(sys: System, state: State, ctrl: torch.Tensor) -> ContactForc
     terms = method.step_terms(sys, bodies, lanes.to_lanes(state.q), h)
     con, force = method.contact_forces(sys, bodies, ctrl_lanes, terms, h)
     world = sys.num_bodies  # the ext index to_lanes gives the static world (after the moving bodies)
-    body_b = torch.full_like(con.body_a, world) if con.body_b is None else con.body_b
+    body_a = torch.where(con.body_a == world, -1, con.body_a)
+    body_b = torch.full_like(body_a, -1) if con.body_b is None else torch.where(con.body_b == world, -1, con.body_b)
     return ContactForces(lanes.from_lanes(con.pos, 1), lanes.from_lanes(con.normal, 1), lanes.from_lanes(con.depth),
-                         lanes.from_lanes(con.depth) > 0, lanes.from_lanes(force, 1),
-                         torch.where(con.body_a == world, -1, con.body_a), torch.where(body_b == world, -1, body_b))
+                         lanes.from_lanes(con.depth) > 0, lanes.from_lanes(force, 1), body_a, body_b)
