@@ -1,7 +1,7 @@
 """A training run (:class:`Run`: progress, logging, checkpoints, budget, plots and the policy video) and the pieces
 the recipes share, each in a module of its own: envs (``env_factory``), what differs per task (``tasks``:
 ``physics_task``, ``nav_task``), evaluation (``evaluation``), checkpoints (``checkpoints``), curves and videos
-(``outputs``); their names stay importable from here. The networks are in ``torchsim.algos.networks``."""
+(``outputs``). The networks are in ``torchsim.algos.networks``."""
 
 import collections
 import json
@@ -18,19 +18,11 @@ from tensordict import TensorDict
 from torchrl.envs import TransformedEnv
 from torchrl.record.loggers import get_logger
 
-from torchsim.algos.checkpoints import (RESUMABLE_KEYS, check_resumable, config_changes, load_checkpoint,  # noqa: F401
-                                        load_policy, restore_rng, save_checkpoint)
+from torchsim.algos.checkpoints import check_resumable, load_checkpoint, restore_rng, save_checkpoint
 from torchsim.algos.distributed import Ranks
-from torchsim.algos.env_factory import compiles, make_env, make_eval_env, obs_norm  # noqa: F401
-from torchsim.algos.evaluation import Evaluation, evaluate  # noqa: F401
-from torchsim.algos.outputs import plot_curves, video  # noqa: F401
-from torchsim.algos.physics_task import render_gif  # noqa: F401
-
-#: Importable from here as before the split (tests, studies, scripts); new code imports them from their modules.
-__all__ = ["RESUMABLE_KEYS", "check_resumable", "config_changes", "load_checkpoint", "load_policy", "restore_rng",
-           "save_checkpoint", "compiles", "make_env", "make_eval_env", "obs_norm", "Evaluation", "evaluate",
-           "plot_curves", "render_gif", "video", "TrainingDiverged", "EPISODES", "MINIBATCH_ORDER", "RunningEpisodes",
-           "Run", "maybe_compile"]
+from torchsim.algos.env_factory import compiles, obs_norm
+from torchsim.algos.evaluation import evaluate
+from torchsim.algos.outputs import plot_curves, video
 
 # tensordict reads a deprecated dynamo flag while torch.compile traces the loss (tensordict 0.14, torch 2.13)
 warnings.filterwarnings("ignore", message=r"torch._dynamo.config.inline_inbuilt_nn_modules is deprecated")

@@ -73,7 +73,7 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--episodes", type=int, default=0, help="live: stop after this many episodes (0: never)")
     p.add_argument("--port", type=int, default=8080)
     p.add_argument("--host", default="127.0.0.1",
-                   help="the address to serve on (default: this machine only; 0.0.0.0: every network interface)")
+                   help="the address to serve on (default %(default)s: this machine only; 0.0.0.0: every network interface)")
     p.add_argument("--seed", type=int, default=0)
     return p
 

@@ -26,7 +26,8 @@ from omegaconf import OmegaConf
 from torchrl.envs.utils import ExplorationType, set_exploration_type, step_mdp
 
 import torchsim
-from torchsim.algos.common import load_checkpoint, load_policy, make_env
+from torchsim.algos.checkpoints import load_checkpoint, load_policy
+from torchsim.algos.env_factory import make_env
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))  # the benchmarks' MuJoCo helpers
 from _timing import mujoco_start_states  # noqa: E402

@@ -2,35 +2,24 @@
 load path, before its code runs), and the browser viewer serves this machine only unless told otherwise."""
 
 import ast
-import importlib.util
-import os
 import pathlib
 import pickle
 import socket
+import subprocess
 import sys
 import warnings
 
 import pytest
 import torch
+from omegaconf import OmegaConf
 
 from torchsim.algos import evaluate as evaluate_cli
-from torchsim.algos.checkpoints import load_checkpoint
+from torchsim.algos.checkpoints import load_checkpoint, load_policy
+from torchsim.algos.env_factory import make_env
 from torchsim.algos.train import run
 from tiny_runs import tiny_ppo
 
 REPO = pathlib.Path(__file__).resolve().parent.parent
-
-
-def script(where: str, monkeypatch):
-    """The module ``<where>.py``, e.g. ``scripts/view`` (its folder on the path for its own imports): the scripts,
-    benchmarks and studies that read checkpoints are the subjects here, run as their users run them."""
-    folder, name = where.split("/")
-    monkeypatch.syspath_prepend(str(REPO / folder))
-    monkeypatch.setenv("MUJOCO_GL", os.environ.get("MUJOCO_GL", "egl"))  # record_video sets it on import
-    spec = importlib.util.spec_from_file_location(f"script_{name}", REPO / folder / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 class Payload:
@@ -58,53 +47,47 @@ def test_the_payload_runs_code_when_loaded_freely(hostile):
     assert marker.exists()
 
 
-# every path by which torchsim reads a checkpoint: the library, resume, the evaluation CLI, the scripts and studies
+# every path by which the library reads a checkpoint: the loader, resume and the evaluation CLI; the scripts,
+# benchmarks and studies read them through ``load_checkpoint`` (``test_no_unsafe_loads`` holds them to it)
 LOADERS = {
-    "load_checkpoint": lambda path, mp: load_checkpoint(path),
-    "resume": lambda path, mp: run(tiny_ppo(f"resume={path}"), path.parent / "resumed"),
-    "torchsim.evaluate": lambda path, mp: evaluate_cli.main([f"checkpoint={path}"]),
-    "view.py --policy/--watch": lambda path, mp: script("scripts/view", mp).load(path),
-    "record_video.py --policy": lambda path, mp: script("scripts/record_video", mp).policy_rollout(str(path), 5),
-    "pusher_outcome.py": lambda path, mp: argv_main("studies/pusher_outcome", [str(path)], mp),
-    "pointnav_report.py": lambda path, mp: argv_main("studies/pointnav_report", [str(path), str(path.parent / "r.png")],
-                                                     mp),
-    "bench_pointnav.py --checkpoint": lambda path, mp: argv_main("benchmarks/bench_pointnav",
-                                                                 ["--checkpoint", str(path)], mp),
+    "load_checkpoint": lambda path: load_checkpoint(path),
+    "resume": lambda path: run(tiny_ppo(f"resume={path}"), path.parent / "resumed"),
+    "torchsim.evaluate": lambda path: evaluate_cli.main([f"checkpoint={path}"]),
 }
 
 
-def argv_main(where: str, argv: list, monkeypatch):
-    module = script(where, monkeypatch)
-    monkeypatch.setattr(sys, "argv", [f"{where}.py", *argv])
-    module.main()
-
-
 @pytest.mark.parametrize("loader", LOADERS)
-def test_hostile_checkpoint_is_refused(loader, hostile, monkeypatch):
+def test_hostile_checkpoint_is_refused(loader, hostile):
     path, marker = hostile
     with pytest.raises(pickle.UnpicklingError, match="refused to load"):
-        LOADERS[loader](path, monkeypatch)
+        LOADERS[loader](path)
     assert not marker.exists(), f"{loader} ran the checkpoint's code"
 
 
-def test_no_torch_load_without_weights_only():
+def test_no_unsafe_loads():
     """Every ``torch.load`` call in the package, scripts, benchmarks and studies passes ``weights_only=True`` (one does:
-    ``load_checkpoint``), so a script added later cannot bring the full unpickler back unnoticed."""
+    ``load_checkpoint``) and none calls ``pickle.load``/``pickle.loads``, so a script added later cannot bring the
+    full unpickler back unnoticed."""
     calls = []
     for folder in ("torchsim", "algos", "envs", "scripts", "benchmarks", "studies"):
         for path in sorted((REPO / folder).rglob("*.py")):
             for node in ast.walk(ast.parse(path.read_text(), str(path))):
-                if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr == "load"
-                        and isinstance(node.func.value, ast.Name) and node.func.value.id == "torch"):
+                if not (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                        and isinstance(node.func.value, ast.Name)):
+                    continue
+                module, function = node.func.value.id, node.func.attr
+                if module == "torch" and function == "load":
                     safe = any(k.arg == "weights_only" and isinstance(k.value, ast.Constant) and k.value.value is True
                                for k in node.keywords)
                     calls.append((f"{path.relative_to(REPO)}:{node.lineno}", safe))
+                elif module == "pickle" and function in ("load", "loads"):
+                    calls.append((f"{path.relative_to(REPO)}:{node.lineno}", False))
     assert calls and all(safe for _, safe in calls), [where for where, safe in calls if not safe]
 
 
-def test_training_checkpoint_loads_everywhere(tmp_path, monkeypatch):
+def test_training_checkpoint_loads_everywhere(tmp_path):
     """What the training code writes (config as a plain dict, RNG state as a tensor) passes ``weights_only``:
-    evaluation, the viewer's loader and resume all read it."""
+    evaluation, the policy (as the viewer and the video script load it) and resume all read it."""
     run(tiny_ppo(), tmp_path)
     path = tmp_path / "checkpoints" / "last.pt"
     ckpt = load_checkpoint(path)
@@ -112,8 +95,8 @@ def test_training_checkpoint_loads_everywhere(tmp_path, monkeypatch):
     assert ckpt["counters"]["iteration"] == 2
     result = evaluate_cli.main([f"checkpoint={path}", "episodes=2", "max_steps=3"])
     assert result["env"] == "inverted_pendulum" and result["env_steps_trained"] == 32
-    env, actor, name = script("scripts/view", monkeypatch).load(path)
-    assert name == "inverted_pendulum" and actor is not None
+    actor = load_policy(ckpt, make_env(OmegaConf.create(ckpt["cfg"]), 1, "cpu"), "cpu")
+    assert actor is not None
     resumed = run(tiny_ppo(f"resume={path}", "budget.env_steps=48"), tmp_path / "resumed")
     assert resumed.env_steps == 48 and resumed.iteration == 3
 
@@ -178,7 +161,8 @@ def test_loopback_hosts():
     assert not any(is_loopback(h) for h in ("0.0.0.0", "::", "192.168.1.5", "example.org"))
 
 
-def test_view_script_serves_this_machine_by_default(monkeypatch):
-    view = script("scripts/view", monkeypatch)
-    assert view.parser().parse_args([]).host == "127.0.0.1"
-    assert view.parser().parse_args(["--host", "0.0.0.0"]).host == "0.0.0.0"
+def test_view_script_serves_this_machine_by_default():
+    """The script as its users run it: its ``--help`` states the loopback default its parser holds."""
+    usage = subprocess.run([sys.executable, str(REPO / "scripts" / "view.py"), "--help"], capture_output=True,
+                           text=True, check=True).stdout
+    assert "default 127.0.0.1: this machine only" in " ".join(usage.split())

@@ -286,7 +286,7 @@ def test_training_video_renders_in_process(tmp_path, monkeypatch):
     import subprocess as sp
 
     import torchsim.envs
-    from torchsim.algos import common
+    from torchsim.algos.physics_task import render_gif
 
     def no_child(*args, **kwargs):
         raise AssertionError("started a child process")
@@ -295,7 +295,7 @@ def test_training_video_renders_in_process(tmp_path, monkeypatch):
     env = torchsim.envs.make("reacher")
     qpos = env.sys.q0[None].repeat(4, 1).double().numpy()
     qpos[:, 0] = np.linspace(0.0, 1.0, 4)
-    common.render_gif("reacher", qpos, env.dt, tmp_path / "policy.gif", width=64, height=48)
+    render_gif("reacher", qpos, env.dt, tmp_path / "policy.gif", width=64, height=48)
     from PIL import Image
 
     with Image.open(tmp_path / "policy.gif") as im:
