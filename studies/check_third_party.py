@@ -89,11 +89,17 @@ def load(path: Path, **options):
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             sys = torchsim.load_mjcf(str(path), dtype=F64, **options)
-        return "LOAD", sys, "; ".join(dict.fromkeys(f"warns: {w.message}" for w in caught))
+        return "LOAD", sys, "; ".join(dict.fromkeys(f"warns: {shorten(str(w.message))}" for w in caught))
     except torchsim.UnsupportedMJCFError as e:
         return "REFUSE", None, str(e)
     except Exception as e:  # a bug to report, not to hide
         return "CRASH", None, f"{type(e).__name__}: {e}"
+
+
+def shorten(text: str, limit: int = 160) -> str:
+    """``text`` cut to ``limit`` characters, so that a table cell stays readable (a warning can name hundreds of
+    geoms)."""
+    return text if len(text) <= limit else text[:limit - 1] + "…"
 
 
 def mujoco_rollout(m: mujoco.MjModel, qd0: np.ndarray, steps: int, factor: int):

@@ -109,3 +109,17 @@ def test_condim_one_is_frictionless_like_mujoco(condim):
     print(f"condim {condim}: speed after 0.1 s {state.qd[0, 0].item():.4f} m/s (MuJoCo {d.qvel[0]:.4f})")
     assert abs(state.qd[0, 0].item() - d.qvel[0]) < 0.05
     assert (d.qvel[0] > 0.99) == (condim == 1)
+
+
+def test_torsional_and_rolling_friction_warn_once_per_model():
+    """Pairs with condim 4 or 6 keep their sliding friction, and the loader says once (not once per pair: a hand's
+    fingertips on a floor make hundreds) how many pairs lose their torsional and rolling friction, naming some."""
+    spheres = "".join(f'<body pos="{i} 0 1"><freejoint/><geom name="b{i}" type="sphere" size=".1"/></body>'
+                      for i in range(5))
+    xml = f'<mujoco><worldbody><geom name="floor" type="plane" size="9 9 .1" condim="6"/>{spheres}</worldbody></mujoco>'
+    with pytest.warns(UserWarning) as caught:
+        sys = torchsim.load_mjcf(xml)
+    condim = [str(w.message) for w in caught if "condim" in str(w.message)]
+    assert len(condim) == 1 and condim[0].startswith("5 geom pairs have condim 4 or 6, 'floor' and 'b0' (condim 6)")
+    assert "and 2 more" in condim[0]
+    assert all(torch.all(g.friction == 1.0) for g in sys.contact_groups)  # MuJoCo's default sliding friction, kept

@@ -134,7 +134,7 @@ def candidate_pairs(m: mujoco.MjModel) -> dict:
     filter_parent = not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_FILTERPARENT)
     excluded = np.array(sorted({int(s) for s in m.exclude_signature}), dtype=np.int64)
     body, contype, conaffinity = m.geom_bodyid.astype(np.int64), m.geom_contype, m.geom_conaffinity
-    pairs = {}
+    pairs, condims = {}, {}
     for g1 in range(m.ngeom):  # the filters on all of g1's partners at once: one pass per geom, not per pair
         g2 = np.arange(g1 + 1, m.ngeom)
         b1, b2 = body[g1], body[g2]
@@ -147,13 +147,28 @@ def candidate_pairs(m: mujoco.MjModel) -> dict:
             condim = max(m.geom_condim[g1], m.geom_condim[g2])
             friction = max(m.geom_friction[g1, 0], m.geom_friction[g2, 0])
             margin = max(m.geom_margin[g1], m.geom_margin[g2])
-            pairs[(g1, g2)] = (_sliding_friction(m, g1, g2, condim, friction), margin, *_mixed(m, g1, g2),
+            pairs[(g1, g2)] = (_sliding_friction(condim, friction), margin, *_mixed(m, g1, g2),
                                _invweight(m, g1, g2))
+            condims[(g1, g2)] = condim
     for p in range(m.npair):
         g1, g2 = sorted((m.pair_geom1[p], m.pair_geom2[p]))
-        pairs[(g1, g2)] = (_sliding_friction(m, g1, g2, m.pair_dim[p], m.pair_friction[p, 0]), m.pair_margin[p],
+        pairs[(g1, g2)] = (_sliding_friction(m.pair_dim[p], m.pair_friction[p, 0]), m.pair_margin[p],
                            m.pair_solref[p].copy(), m.pair_solimp[p].copy(), _invweight(m, g1, g2))
+        condims[(g1, g2)] = m.pair_dim[p]
+    _warn_condim(m, {pair: condim for pair, condim in condims.items() if condim > 3})
     return pairs
+
+
+def _warn_condim(m: mujoco.MjModel, beyond_sliding: dict) -> None:
+    """One warning for every pair whose ``condim`` (4, 6) asks for torsional or rolling friction, which torchsim does
+    not model: the count and the first few pairs (a model may have hundreds, e.g. a hand's fingertips on a floor)."""
+    if not beyond_sliding:
+        return
+    geom = lambda g: repr(name(m, mujoco.mjtObj.mjOBJ_GEOM, g))  # noqa: E731
+    shown = [f"{geom(g1)} and {geom(g2)} (condim {c})" for (g1, g2), c in list(beyond_sliding.items())[:3]]
+    more = f" and {len(beyond_sliding) - 3} more" if len(beyond_sliding) > 3 else ""
+    warnings.warn(f"{len(beyond_sliding)} geom pairs have condim 4 or 6, {', '.join(shown)}{more}: torchsim models "
+                  "their sliding friction only (no torsional or rolling friction)", stacklevel=4)
 
 
 def _mixed(m: mujoco.MjModel, g1: int, g2: int):
@@ -173,11 +188,7 @@ def _invweight(m: mujoco.MjModel, g1: int, g2: int) -> float:
     return float(m.body_invweight0[m.geom_bodyid[g1], 0] + m.body_invweight0[m.geom_bodyid[g2], 0])
 
 
-def _sliding_friction(m: mujoco.MjModel, g1: int, g2: int, condim: int, friction: float) -> float:
+def _sliding_friction(condim: int, friction: float) -> float:
     """A pair's sliding friction by MuJoCo's ``condim``: 1 is frictionless, 3 sliding friction; 4 and 6 add
-    torsional and rolling friction, which torchsim does not model (a warning names the pair)."""
-    if condim > 3:
-        warnings.warn(f"geoms {name(m, mujoco.mjtObj.mjOBJ_GEOM, g1)!r} and {name(m, mujoco.mjtObj.mjOBJ_GEOM, g2)!r}"
-                      f" have condim {condim}: torchsim models their sliding friction only (no torsional or rolling"
-                      " friction)", stacklevel=5)
+    torsional and rolling friction, which torchsim does not model (:func:`_warn_condim`)."""
     return 0.0 if condim == 1 else friction
