@@ -13,45 +13,72 @@ poses, the springs and the rotors (armature). Actuator forces (``actuatorfrc``,
 ``actuator_force``; the State does not keep the last controls, so these take ``ctrl``. After ``mj_step`` MuJoCo's
 ``sensordata`` holds the values at the state the step started from: compare with these at that State.
 
+Accelerations and the forces that follow from them are not in the State. ``accelerometer``, ``framelinacc``,
+``frameangacc``, ``force`` and ``torque`` read the mean acceleration over the next step, ``(v' - v) / timestep``
+between the State and the one ``torchsim.step`` reaches from it under ``ctrl`` (one extra step per read; pass
+``next_state`` where the caller has stepped already), where MuJoCo reads the instantaneous acceleration at the
+step's start: the two agree at rest and under constant acceleration, and otherwise differ by about half the change
+of the acceleration over a step (site frames and moment arms are taken midway through the step, as the means are).
+As MuJoCo's, the linear ones read the acceleration less gravity (an accelerometer at rest reads ``+g`` upwards; one
+fixed to the world reads 0). ``force`` and ``torque`` are MuJoCo's ``cfrc_int`` at the site: the wrench the site's
+body's parent puts on the body's subtree, by Newton-Euler over the subtree's bodies (their mean rates of change of
+momentum and angular momentum over the step, less gravity) less the contact forces on it, in the site's frame. The
+contact forces are the spring method's (``torchsim.contact_forces``; another method is refused where the model has
+contacts), averaged over the step's substeps: a model with contacts steps again for them even when given
+``next_state``.
+
+The step's accelerations are torchsim's dynamics, not a closed form: right after ``init`` the spring method's joints
+are unloaded and their first steps take up the load (a pendulum released at rest reads up to 11 m/s^2 off in its
+first step, 0.02 ten steps on), and a body still settling into a contact reads its settling.
+
 Which types are computed, and why the others are not: ``torchsim.io_mjcf.sensors``. ``System`` documents the fields.
 """
+
+from typing import NamedTuple
 
 import torch
 
 from torchsim import activation, actuators, lanes, spatial, tendon_paths, tendons
 from torchsim.contact_forces import ContactForces, contact_forces
-from torchsim.io_mjcf.sensors import FRAME_KINDS, SUBTREE_KINDS
+from torchsim.io_mjcf.sensors import ACC_KINDS, FRAME_KINDS, SUBTREE_KINDS, WRENCH_KINDS
 from torchsim.io_mjcf.subset import UnsupportedMJCFError
 from torchsim.kinematics import _addresses, with_world
-from torchsim.pipeline import check, to_lanes_state
+from torchsim.methods import METHODS
+from torchsim.pipeline import check, run_substeps, step, to_lanes_state
 from torchsim.render import raycast
 from torchsim.state import State
 from torchsim.system import SensorGroup, System
 
-#: The sensor types that read actuator forces, which depend on the controls.
+#: The sensor types that read forces which depend on the controls: actuator forces, contact forces.
 FORCE_KINDS = ("actuatorfrc", "jointactuatorfrc", "tendonactuatorfrc", "touch")
+#: The sensor types read over the next step (see the module), which depends on the controls.
+STEP_KINDS = ACC_KINDS + WRENCH_KINDS
 AXIS_COLUMN = {"framexaxis": 0, "frameyaxis": 1, "framezaxis": 2}
 
 
-def sensordata(sys: System, state: State, ctrl: torch.Tensor | None = None) -> torch.Tensor:
+def sensordata(sys: System, state: State, ctrl: torch.Tensor | None = None,
+               next_state: State | None = None) -> torch.Tensor:
     """Every sensor ``(B, nsensordata)`` in MuJoCo's ``sensordata`` layout; the slots of sensors torchsim does not
-    compute (``sys.sensor_skipped``) read NaN. ``ctrl (B, nu)``: needed where the model has actuator-force
-    sensors."""
-    return lanes.from_lanes(_read(sys, state, ctrl, sys.sensor_groups))
+    compute (``sys.sensor_skipped``) read NaN. ``ctrl (B, nu)``: needed where the model has actuator-force, touch,
+    acceleration, force or torque sensors. ``next_state``: ``torchsim.step(sys, state, ctrl)`` if the caller has
+    it, which the acceleration, force and torque sensors then read instead of stepping again."""
+    return lanes.from_lanes(_read(sys, state, ctrl, sys.sensor_groups, next_state))
 
 
-def sensor(sys: System, state: State, name: str, ctrl: torch.Tensor | None = None) -> torch.Tensor:
-    """Sensor ``name``'s value ``(B, dim)``; ``ctrl (B, nu)`` for an actuator-force sensor. Raises for a name the
-    model lacks and for a sensor torchsim does not compute."""
+def sensor(sys: System, state: State, name: str, ctrl: torch.Tensor | None = None,
+           next_state: State | None = None) -> torch.Tensor:
+    """Sensor ``name``'s value ``(B, dim)``; ``ctrl (B, nu)`` and ``next_state`` as :func:`sensordata`. Raises for a
+    name the model lacks and for a sensor torchsim does not compute."""
     i = _index(sys, name)
     groups = tuple(g for g in sys.sensor_groups if g.kind == sys.sensor_kinds[i])
     adr = sys.sensor_adr[i]
-    return lanes.from_lanes(_read(sys, state, ctrl, groups)[adr:adr + sys.sensor_dims[i]])
+    return lanes.from_lanes(_read(sys, state, ctrl, groups, next_state)[adr:adr + sys.sensor_dims[i]])
 
 
-def sensors_by_name(sys: System, state: State, ctrl: torch.Tensor | None = None) -> dict:
+def sensors_by_name(sys: System, state: State, ctrl: torch.Tensor | None = None,
+                    next_state: State | None = None) -> dict:
     """``{name: (B, dim)}`` for every sensor torchsim computes, in MuJoCo's order."""
-    data = sensordata(sys, state, ctrl)
+    data = sensordata(sys, state, ctrl, next_state)
     return {n: data[:, a:a + d] for n, a, d, skipped in
             zip(sys.sensor_names, sys.sensor_adr, sys.sensor_dims, sys.sensor_skipped) if not skipped}
 
@@ -113,14 +140,9 @@ def _subtree_values(sys: System, frames: _Frames, group: SensorGroup) -> torch.T
     COM, each term's spin ``R I R^T w`` plus its mass times its offset from the COM crossed with its velocity
     relative to the COM's."""
     pos, quat, vel, ang = frames.at(sys.sensor_subtree_frame)
-    row = sys.sensor_subtree_row
     mass = lanes.param(sys.sensor_subtree_mass, 1)
-    rows = row.shape[0]  # as many rows as terms at most: a static shape, no device read
-
-    def per_row(x):  # (3, K, B) -> (3, rows, B)
-        return x.new_zeros(3, rows, x.shape[-1]).index_add(-2, row, x)
-
-    total = mass.new_zeros(rows, 1).index_add(0, row, mass).clamp_min(1e-30)  # rows beyond the last: no terms
+    per_row = _per_row(sys)
+    total = per_row(mass[None])[0].clamp_min(1e-30)  # a row without terms (a massless subtree)
     com = per_row(mass * pos) / total
     if group.kind == "subtreecom":
         return com.index_select(-2, group.obj)
@@ -129,27 +151,149 @@ def _subtree_values(sys: System, frames: _Frames, group: SensorGroup) -> torch.T
         return com_vel.index_select(-2, group.obj)
     inertia = lanes.param(sys.sensor_subtree_inertia, 1, 1)  # principal moments, along the frame's axes
     spin = spatial.quat_rotate(quat, inertia * spatial.quat_rotate_inv(quat, ang))
+    row = sys.sensor_subtree_row
     orbit = mass * spatial.cross(pos - com.index_select(-2, row), vel - com_vel.index_select(-2, row))
     return per_row(spin + orbit).index_select(-2, group.obj)
 
 
-def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -> torch.Tensor:
+def _per_row(sys: System):
+    """Sums over each subtree row's terms: ``(C, K, B) -> (C, R, B)`` (``System.sensor_subtree_*``)."""
+    row, rows = sys.sensor_subtree_row, sys.sensor_subtree_contact.shape[0]  # static shapes, no device read
+    return lambda x: x.new_zeros(x.shape[0], rows, x.shape[-1]).index_add(-2, row, x)
+
+
+def _accelerations(sys: System, frames: _Frames, after: _Frames, group: SensorGroup) -> torch.Tensor:
+    """``accelerometer``, ``framelinacc`` or ``frameangacc`` ``(3, S, B)``: the mean acceleration of the object's
+    frame over the step from ``frames`` to ``after`` (the frames at the next State). The linear ones less gravity,
+    as MuJoCo's (its world accelerates at ``-g``), the accelerometer's in its site's frame midway through the step;
+    0 for an object fixed to the world, where MuJoCo returns 0 (a dof-less body)."""
+    _, quat, vel, ang = frames.at(group.obj)
+    _, quat_next, vel_next, ang_next = after.at(group.obj)
+    if group.kind == "frameangacc":
+        return (ang_next - ang) / sys.timestep
+    moving = (sys.sensor_frame_body.index_select(0, group.obj) != sys.num_bodies)[:, None]  # (S, 1)
+    acc = torch.where(moving, (vel_next - vel) / sys.timestep - sys.gravity.view(3, 1, 1), 0.0)
+    return _in_mean_frame(quat, quat_next, acc) if group.kind == "accelerometer" else acc
+
+
+def _in_mean_frame(quat: torch.Tensor, quat_next: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """World vectors ``x (3, S, B)``, means over a step, in the frame midway between ``quat`` and ``quat_next``
+    (the mean of the two, to second order in the step's turn): a frame spinning at ``w`` turns by ``w dt`` over the
+    step, and the step's mean in the frame at its start would be off by half that turn (a box tumbling at 5 rad/s:
+    0.02 m/s^2 on its corner's 7.5)."""
+    return 0.5 * (spatial.quat_rotate_inv(quat, x) + spatial.quat_rotate_inv(quat_next, x))
+
+
+class _SubstepContacts(NamedTuple):
+    """The contacts of each substep of a step, lanes layout, as the spring method applies them: points ``pos (3, C,
+    B)``, ``force (3, C, B)`` on body a over the substep [N] (body b takes its opposite), ext bodies ``body_a,
+    body_b (C,)`` (``body_b`` None where every pair is against the static world)."""
+
+    pos: list
+    force: list
+    body_a: torch.Tensor
+    body_b: torch.Tensor | None
+
+
+def _step_recording_contacts(sys: System, state: State, ctrl: torch.Tensor):
+    """``torchsim.step``'s next State, by the same outline (``pipeline.run_substeps``), and the contact forces each of
+    its substeps applies (the method's ``contact_forces``, which ``torchsim.contact_forces`` reads for the first).
+
+    Force and torque sensors take the mean of these over the step: the first substep's alone would not match the
+    step's mean accelerations where a contact's impulse changes from substep to substep (a lever resting its tip
+    on the floor: ~4 N off on 11 N)."""
+    method = METHODS[sys.method]
+    if method.contact_forces is None:
+        raise NotImplementedError(f"force and torque sensors read contact forces, read out for the spring method "
+                                  f"only, not {sys.method!r}")
+    pos, force, bodies_ab = [], [], []
+
+    def substep(sys, bodies, ctrl, terms, h):
+        con, push = method.contact_forces(sys, bodies, ctrl, terms, h)
+        pos.append(con.pos)
+        force.append(torch.where(con.depth > 0, push, 0.0))
+        bodies_ab[:] = [con.body_a, con.body_b]
+        return method.substep(sys, bodies, ctrl, terms, h)
+
+    after = run_substeps(sys, state, ctrl, substep=substep)
+    return after, _SubstepContacts(pos, force, *bodies_ab)
+
+
+def _wrenches(sys: System, frames: _Frames, after: _Frames, contacts: _SubstepContacts | None,
+              group: SensorGroup) -> torch.Tensor:
+    """``force`` or ``torque`` ``(3, S, B)``: MuJoCo's ``cfrc_int`` of the site's body at the site, in its frame.
+
+    Newton-Euler over the subtree's terms (``System.sensor_subtree_*``, its MuJoCo bodies with mass, each rigid
+    with its torchsim body): each term's ``m (a - g)`` and the rate of change of its spin ``R I R^T w``, their means
+    over the step from ``frames`` to ``after`` (the frames at the next State), the forces' moments about the
+    subtree's COM midway through the step; less the mean over the step's substeps of the contact forces on the
+    subtree's torchsim bodies (``System.sensor_subtree_contact``; a contact between two of them cancels), the only
+    forces MuJoCo counts as external that the loader lets through. The torque moves from the COM to the site by
+    ``(com - site) x force``; both in the site's frame midway through the step."""
+    pos, quat, vel, ang = frames.at(sys.sensor_subtree_frame)
+    pos_next, quat_next, vel_next, ang_next = after.at(sys.sensor_subtree_frame)
+    pos = 0.5 * (pos + pos_next)  # the moment arms midway through the step, as the means are
+    mass = lanes.param(sys.sensor_subtree_mass, 1)
+    inertia = lanes.param(sys.sensor_subtree_inertia, 1, 1)  # principal moments, along the frame's axes
+
+    def spin(q, w):
+        return spatial.quat_rotate(q, inertia * spatial.quat_rotate_inv(q, w))
+
+    per_row = _per_row(sys)
+    com = per_row(mass * pos) / per_row(mass[None])[0].clamp_min(1e-30)  # a massless subtree: about the origin
+    term_force = mass * ((vel_next - vel) / sys.timestep - sys.gravity.view(3, 1, 1))
+    spin_rate = (spin(quat_next, ang_next) - spin(quat, ang)) / sys.timestep
+    force = per_row(term_force)
+    torque = per_row(spin_rate + spatial.cross(pos - com.index_select(-2, sys.sensor_subtree_row), term_force))
+    if contacts is not None:
+        weights = sys.sensor_subtree_contact.to(force.dtype)  # (R, N + 1), ext-indexed like the contacts' bodies
+        share = weights.index_select(1, contacts.body_a)
+        if contacts.body_b is not None:  # body b takes the opposite force
+            share = share - weights.index_select(1, contacts.body_b)
+        share = share[None, :, :, None] / len(contacts.force)  # (1, R, C, 1): the mean over the substeps
+        for point, push in zip(contacts.pos, contacts.force):
+            on_row = share * push.unsqueeze(1)  # (3, R, C, B)
+            force = force - on_row.sum(-2)
+            torque = torque - spatial.cross(point.unsqueeze(1) - com.unsqueeze(-2), on_row).sum(-2)
+    site_pos, site_quat, _, _ = frames.at(group.obj)
+    site_pos_next, site_quat_next, _, _ = after.at(group.obj)
+    force, torque, com = (x.index_select(-2, group.ref) for x in (force, torque, com))
+    if group.kind == "torque":
+        force = torque + spatial.cross(com - 0.5 * (site_pos + site_pos_next), force)
+    return _in_mean_frame(site_quat, site_quat_next, force)
+
+
+def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple,
+          next_state: State | None = None) -> torch.Tensor:
     """``sensordata (nsensordata, B)`` (lanes) with the slots of ``groups`` filled in and the others NaN."""
     batch = state.q.shape[0]
     q, qd = lanes.to_lanes(state.q), lanes.to_lanes(state.qd)
     q_dof, qd_dof = q.index_select(0, sys.dof_qpos), qd.index_select(0, sys.dof_qvel)
     length, velocity = _tendon_coordinates(sys, state, q_dof, qd_dof)
-    needs_ctrl = [g for g in groups if g.kind in FORCE_KINDS]
+    needs_ctrl = [g.kind for g in groups if g.kind in FORCE_KINDS] + [g.kind for g in groups if g.kind in STEP_KINDS]
     if needs_ctrl:
         if ctrl is None:
-            raise ValueError(f"the {needs_ctrl[0].kind} sensors read forces that depend on the controls: pass "
-                             "ctrl (B, nu)")
+            reads = ("read the next step's accelerations, which depend" if needs_ctrl[0] in STEP_KINDS
+                     else "read forces that depend")
+            raise ValueError(f"the {needs_ctrl[0]} sensors {reads} on the controls: pass ctrl (B, nu)")
         check(sys, "ctrl", ctrl, sys.nu, batch)
+    if any(g.kind in FORCE_KINDS for g in groups):
         driving = lanes.to_lanes(ctrl)
         if sys.na:  # static: activated actuators are driven by their activations
             driving = activation.drive(sys, driving, lanes.to_lanes(state.act))[0]
         force = actuators.forces(sys, *actuators.coordinates(sys, q_dof, qd_dof, length, velocity), driving)
-    frames = _Frames(sys, state) if any(g.kind in FRAME_KINDS + SUBTREE_KINDS + ("touch",) for g in groups) else None
+    reads_frames = FRAME_KINDS + SUBTREE_KINDS + STEP_KINDS + ("touch",)
+    frames = _Frames(sys, state) if any(g.kind in reads_frames for g in groups) else None
+    contacts = None
+    if sys.contact_groups and any(g.kind in WRENCH_KINDS for g in groups):  # static: a model with contacts
+        next_state, contacts = _step_recording_contacts(sys, state, ctrl)  # the step again, for its contacts
+    if any(g.kind in STEP_KINDS for g in groups):
+        if next_state is None:
+            next_state = step(sys, state, ctrl)
+        elif next_state.x_pos.shape != state.x_pos.shape:
+            raise ValueError(f"next_state's bodies {tuple(next_state.x_pos.shape)} do not match the state's "
+                             f"{tuple(state.x_pos.shape)}")
+        after = _Frames(sys, next_state)
     data = q.new_full((sys.nsensordata, batch), float("nan"))
     for group in groups:
         kind = group.kind
@@ -187,6 +331,10 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple) -
             values = _subtree_values(sys, frames, group)
         elif kind == "touch":
             values = _touch(sys, contact_forces(sys, state, ctrl), frames, group)
+        elif kind in ACC_KINDS:
+            values = _accelerations(sys, frames, after, group)
+        elif kind in WRENCH_KINDS:
+            values = _wrenches(sys, frames, after, contacts, group)
         else:
             values = _frame_values(sys, frames, group)
         data = data.index_copy(0, _addresses(group.adr, values.shape[0]), values.flatten(0, 1))

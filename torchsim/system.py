@@ -57,10 +57,12 @@ class SensorGroup(NamedTuple):
         adr: (S,) each sensor's first address in ``sensordata``.
         obj: (S,) what each reads, by kind: a qpos address (``jointpos``, ``ballquat``), a qvel address
             (``jointvel``, ``ballangvel``), a tendon, an actuator, a dof (``jointactuatorfrc``), a sensor frame
-            (frame sensors, ``gyro``, ``velocimeter``, ``magnetometer``; a ``touch`` sensor's site) or a subtree
-            row (``subtreecom``, ``subtreelinvel``, ``subtreeangmom``).
+            (frame sensors, ``gyro``, ``velocimeter``, ``magnetometer``, ``framelinacc``, ``frameangacc``; the site
+            of a ``touch``, ``accelerometer``, ``force`` or ``torque`` sensor) or a subtree row (``subtreecom``,
+            ``subtreelinvel``, ``subtreeangmom``).
         ref: (S,) the sensor frame of a frame sensor's reference (0, the world, where it has none); a touch
-            sensor's zone (``System.sensor_touch_size``); -1 for others.
+            sensor's zone (``System.sensor_touch_size``); the subtree row of a force or torque sensor's site's body;
+            -1 for others.
     """
 
     kind: str
@@ -243,7 +245,9 @@ class System:
         ``cutoff`` clamping each real-valued slot to ``[-cutoff, cutoff]`` (inf where none).
         sensor_static_potential: () [J] the gravitational potential energy of the bodies fused into the world.
         Touch zones, one per touch sensor (its group's ``ref``): sensor_touch_size (T, 3) the site's MuJoCo size
-        [m], sensor_touch_shape (T,) its shape's code in ``torchsim.render.raycast.CODE``.
+        [m], sensor_touch_shape (T,) its shape's code in ``torchsim.render.raycast.CODE``.  sensor_subtree_contact:
+        (R, N + 1) 1 where the contact forces on a torchsim body (``N``: the world) push on a subtree row, else 0
+        (force and torque sensors subtract them from the subtree's inertial wrench).
     MuJoCo bodies (for poses of fused bodies, e.g. rendering): mjbody_body (nbody,) ext index;
         mjbody_pos, mjbody_quat: frame offset of each MuJoCo body in its fused body's frame.
     """
@@ -461,6 +465,7 @@ class System:
     sensor_static_potential: torch.Tensor
     sensor_touch_size: torch.Tensor
     sensor_touch_shape: torch.Tensor
+    sensor_subtree_contact: torch.Tensor
     # MuJoCo body frames
     mjbody_body: torch.Tensor
     mjbody_pos: torch.Tensor

@@ -4,12 +4,17 @@ MuJoCo's ``sensordata``, grouped by type for ``torchsim.sensors``.
 Sensors read the State: joint, tendon and actuator positions and velocities, frame poses and velocities of bodies,
 geoms, sites and (fixed) cameras, subtree centres of mass, their velocities and angular momenta, gyros,
 velocimeters and magnetometers, joint and tendon limits, potential and kinetic energy, and, given the controls,
-actuator forces and touch (``torchsim.contact_forces``). Sensors that need accelerations or constraint forces
-(``accelerometer``, ``force``, ``torque``, ``framelinacc``, ...), the simulation time (``clock``) or a history (``delay``,
-``interval``), and those not implemented yet (``rangefinder``, ``camprojection``, ``insidesite``, ``distance``,
-``normal``, ``fromto``; :data:`WHY`), are kept in the layout but not computed: one warning names them, their
-``sensordata`` slots read NaN and reading one by name raises. ``cutoff`` clamps as in MuJoCo; ``noise`` is
-ignored, as MuJoCo's engine ignores it (the model only stores it).
+actuator forces, touch (``torchsim.contact_forces``) and the sensors read over the next step: accelerations
+(``accelerometer``, ``framelinacc``, ``frameangacc``, the mean over the step where MuJoCo reads the instantaneous
+value) and the wrench a body's parent puts on its subtree (``force``, ``torque``; refused, with the reason, where
+forces MuJoCo counts as external act on the subtree that torchsim does not read out: connect and weld constraints,
+the contacts of a body fused with its parent when both sides' geoms collide, a body fixed to the world; and, where
+the model has contacts, a method other than spring, whose contact forces are not read out). Sensors
+that need other constraint forces (``contact``, ``jointlimitfrc``, ...), the simulation time (``clock``) or a
+history (``delay``, ``interval``), and those not implemented yet (``rangefinder``, ``camprojection``,
+``insidesite``, ``distance``, ``normal``, ``fromto``; :data:`WHY`), are kept in the layout but not computed: one
+warning names them, their ``sensordata`` slots read NaN and reading one by name raises. ``cutoff`` clamps as in
+MuJoCo; ``noise`` is ignored, as MuJoCo's engine ignores it (the model only stores it).
 """
 
 import warnings
@@ -42,7 +47,9 @@ KIND = {int(t): n for t, n in {
     Sens.mjSENS_MAGNETOMETER: "magnetometer", Sens.mjSENS_JOINTLIMITPOS: "jointlimitpos",
     Sens.mjSENS_JOINTLIMITVEL: "jointlimitvel", Sens.mjSENS_TENDONLIMITPOS: "tendonlimitpos",
     Sens.mjSENS_TENDONLIMITVEL: "tendonlimitvel", Sens.mjSENS_E_POTENTIAL: "e_potential",
-    Sens.mjSENS_E_KINETIC: "e_kinetic", Sens.mjSENS_TOUCH: "touch",
+    Sens.mjSENS_E_KINETIC: "e_kinetic", Sens.mjSENS_TOUCH: "touch", Sens.mjSENS_ACCELEROMETER: "accelerometer",
+    Sens.mjSENS_FRAMELINACC: "framelinacc", Sens.mjSENS_FRAMEANGACC: "frameangacc", Sens.mjSENS_FORCE: "force",
+    Sens.mjSENS_TORQUE: "torque",
 }.items()}
 #: MJCF names of types not computed whose enum name differs.
 ELEMENT = {int(Sens.mjSENS_GEOMDIST): "distance", int(Sens.mjSENS_GEOMNORMAL): "normal",
@@ -57,6 +64,11 @@ SUBTREE_KINDS = ("subtreecom", "subtreelinvel", "subtreeangmom")
 LIMIT_KINDS = ("jointlimitpos", "jointlimitvel", "tendonlimitpos", "tendonlimitvel")
 ENERGY_KINDS = ("e_potential", "e_kinetic")
 ACTUATOR_KINDS = ("actuatorpos", "actuatorvel", "actuatorfrc", "jointactuatorfrc", "tendonactuatorfrc")
+#: The kinds read from the accelerations over the next step: their group's ``obj`` is the sensor frame of their object
+#: (a site for ``accelerometer``); and the kinds read from the wrench the parent puts on a site's body's subtree: their
+#: ``obj`` is the site's sensor frame and their ``ref`` the subtree's row (``System.sensor_subtree_*``).
+ACC_KINDS = ("accelerometer", "framelinacc", "frameangacc")
+WRENCH_KINDS = ("force", "torque")
 #: A touch sensor's site shape (``mjtGeom``) -> its code in ``torchsim.render.raycast.CODE`` (the ray tests).
 TOUCH_SHAPES = {int(mujoco.mjtGeom.mjGEOM_SPHERE): 1, int(mujoco.mjtGeom.mjGEOM_CAPSULE): 2,
                 int(mujoco.mjtGeom.mjGEOM_ELLIPSOID): 3, int(mujoco.mjtGeom.mjGEOM_CYLINDER): 4,
@@ -64,13 +76,10 @@ TOUCH_SHAPES = {int(mujoco.mjtGeom.mjGEOM_SPHERE): 1, int(mujoco.mjtGeom.mjGEOM_
 #: The MjModel field prefix of each object type frame sensors read besides bodies.
 PREFIX = {int(Obj.mjOBJ_GEOM): "geom", int(Obj.mjOBJ_SITE): "site", int(Obj.mjOBJ_CAMERA): "cam"}
 #: Why the other sensor types are not computed.
-_ACCELERATIONS = "it needs accelerations, which the State does not hold"
 _FORCES = "it needs contact or constraint forces, which the State does not hold"
 _NOT_YET = "it is not implemented yet (the State holds what it needs)"
 WHY = {int(t): why for t, why in {
-    Sens.mjSENS_ACCELEROMETER: _ACCELERATIONS, Sens.mjSENS_FRAMELINACC: _ACCELERATIONS,
-    Sens.mjSENS_FRAMEANGACC: _ACCELERATIONS, Sens.mjSENS_FORCE: _FORCES,
-    Sens.mjSENS_TORQUE: _FORCES, Sens.mjSENS_CONTACT: _FORCES, Sens.mjSENS_TACTILE: _FORCES,
+    Sens.mjSENS_CONTACT: _FORCES, Sens.mjSENS_TACTILE: _FORCES,
     Sens.mjSENS_JOINTLIMITFRC: _FORCES, Sens.mjSENS_TENDONLIMITFRC: _FORCES,
     Sens.mjSENS_CAMPROJECTION: _NOT_YET, Sens.mjSENS_INSIDESITE: _NOT_YET,
     Sens.mjSENS_GEOMDIST: _NOT_YET, Sens.mjSENS_GEOMNORMAL: _NOT_YET, Sens.mjSENS_GEOMFROMTO: _NOT_YET,
@@ -124,6 +133,10 @@ def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
         elif kind == "touch":  # its site's frame and its row of the touch zones
             row = (_frame(m, fused, frames, obj_type, obj), len(touch_zones))
             touch_zones.append((m.site_size[obj].copy(), TOUCH_SHAPES[int(m.site_type[obj])]))
+        elif kind in ACC_KINDS:  # its object's frame
+            row = (_frame(m, fused, frames, obj_type, obj), -1)
+        elif kind in WRENCH_KINDS:  # its site's frame and the row of the subtree of the site's body
+            row = (_frame(m, fused, frames, obj_type, obj), subtrees.setdefault(int(m.site_bodyid[obj]), len(subtrees)))
         elif kind in ENERGY_KINDS:  # the whole model's
             row = (0, -1)
         else:  # a tendon or actuator sensor
@@ -156,6 +169,7 @@ def sensor_fields(m: mujoco.MjModel, fused: FusedBodies, jnt_dof: dict) -> dict:
         sensor_static_potential=torch.tensor(_static_potential(m, fused), dtype=torch.float64),
         sensor_touch_size=torch.as_tensor(np.array([z[0] for z in touch_zones], dtype=float).reshape(-1, 3)),
         sensor_touch_shape=torch.as_tensor(np.array([z[1] for z in touch_zones], dtype=np.int64)),
+        sensor_subtree_contact=torch.as_tensor(_subtree_contacts(m, fused, subtrees)),
     )
 
 
@@ -173,8 +187,15 @@ def _not_computed(m: mujoco.MjModel, i: int, kind: str | None) -> str:
                for t, o in objects):
             return "its camera is not fixed to its body (mode)"
         bodies = [_body(m, t, o) for t, o in objects]
-    elif kind == "touch":
+    elif kind == "touch" or kind in ACC_KINDS:
+        if obj_type == Obj.mjOBJ_CAMERA and m.cam_mode[obj] != int(mujoco.mjtCamLight.mjCAMLIGHT_FIXED):
+            return "its camera is not fixed to its body (mode)"
         bodies = [_body(m, obj_type, obj)]
+    elif kind in WRENCH_KINDS:
+        bodies = _subtree_bodies(m, int(m.site_bodyid[obj]))
+        why = _wrench_not_computed(m, int(m.site_bodyid[obj]))
+        if why:
+            return why
     else:
         bodies = _subtree_bodies(m, obj) if kind in SUBTREE_KINDS else []
     if any(m.body_mocapid[b] >= 0 for b in bodies):  # fused into the world, they would read the model's pose
@@ -204,6 +225,60 @@ def _not_computed(m: mujoco.MjModel, i: int, kind: str | None) -> str:
         if any(m.body_mass[b] > 0 for b in range(1, m.nbody) if m.body_mocapid[m.body_weldid[b]] >= 0):
             return "it weighs mocap bodies, whose poses are System parameters"
     return ""
+
+
+def _collides(m: mujoco.MjModel) -> np.ndarray:
+    """Whether each geom can take part in a contact: ``contype``/``conaffinity`` bits or an explicit ``<pair>``."""
+    collides = (m.geom_contype != 0) | (m.geom_conaffinity != 0)
+    collides[m.pair_geom1] = True
+    collides[m.pair_geom2] = True
+    return collides
+
+
+def _wrench_not_computed(m: mujoco.MjModel, body: int) -> str:
+    """Why a force or torque sensor on MuJoCo body ``body`` is not computed ("" if it is): MuJoCo's ``cfrc_int``
+    subtracts from the subtree's inertial wrench every force it counts as external (``cfrc_ext``: contacts,
+    connect and weld constraints, ``xfrc_applied``); torchsim must subtract the same ones, from the contact forces
+    it reads out (``torchsim.contact_forces``), or refuse."""
+    if m.body_weldid[body] == 0:
+        return ("its site's body is fixed to the world, whose contacts torchsim's contact forces do not tell apart "
+                "from the world's")
+    inside = set(_subtree_bodies(m, body))
+    for e in range(m.neq):
+        if int(m.eq_type[e]) in (int(mujoco.mjtEq.mjEQ_CONNECT), int(mujoco.mjtEq.mjEQ_WELD)):
+            ends = (m.eq_obj1id[e], m.eq_obj2id[e])
+            if m.eq_objtype[e] == Obj.mjOBJ_SITE:
+                ends = tuple(m.site_bodyid[s] for s in ends)
+            if any(int(b) in inside for b in ends):
+                return ("a connect or weld constraint pulls on its subtree: MuJoCo counts that force as external, "
+                        "which torchsim does not read out")
+    same = [b for b in range(m.nbody) if m.body_weldid[b] == m.body_weldid[body]]  # fused into one torchsim body
+    collides = _collides(m)
+    sides = {b in inside for b in same for g in range(m.body_geomadr[b], m.body_geomadr[b] + m.body_geomnum[b])
+             if collides[g]}
+    if len(sides) == 2:
+        return ("its body has no joint to its parent and geoms on both sides of it collide: the contact forces on "
+                "their fused torchsim body do not say which side they push")
+    return ""
+
+
+def _subtree_contacts(m: mujoco.MjModel, fused: FusedBodies, subtrees: dict) -> np.ndarray:
+    """``(R, N + 1)``: 1 where the contacts of torchsim body ``n`` (``N``: the world) push on subtree row ``r``:
+    the body holds MuJoCo bodies of the subtree and no colliding geom outside it (force and torque sensors are
+    refused where it holds colliding geoms on both sides, :func:`_wrench_not_computed`)."""
+    n = len(fused.roots)
+    weights = np.zeros((len(subtrees), n + 1))
+    collides = _collides(m)
+    for root, row in subtrees.items():
+        inside = set(_subtree_bodies(m, root))
+        for b in inside:
+            if m.body_weldid[b] != 0 and m.body_mocapid[b] < 0:
+                weights[row, fused.body_of(m, b)] = 1.0
+        for b in range(m.nbody):  # a colliding geom outside the subtree on a body fused with one inside it
+            geoms = range(m.body_geomadr[b], m.body_geomadr[b] + m.body_geomnum[b])
+            if b not in inside and m.body_weldid[b] != 0 and any(collides[g] for g in geoms):
+                weights[row, fused.body_of(m, b)] = 0.0
+    return weights
 
 
 def _static_potential(m: mujoco.MjModel, fused: FusedBodies) -> float:
