@@ -26,7 +26,7 @@ SEPARATION_BOUND_M = 0.01
 OMEGA_SWING = 10.0  # [rad/s] initial angles shrink by OMEGA_SWING / omega on stiffer springs
 _LOAD_DEFAULTS = inspect.signature(torchsim.load_mjcf).parameters
 FLAG_BOUNDS = {k: _LOAD_DEFAULTS[k].default for k in ("max_speed", "max_distance")}
-KAPPA_DEFAULT = _LOAD_DEFAULTS["joint_stiffness"].default
+KAPPA_DEFAULT = torchsim.io_mjcf.JOINT_STIFFNESS
 
 
 def chain_mjcf(h: float) -> str:

@@ -48,11 +48,13 @@ is harmless):
   (``torchsim.io_mjcf.sensors`` lists the types computed; the others load with one warning and raise when read).
 
 One module per part of the model: ``subset`` (the checks), ``bodies``, ``joints``, ``actuators``, ``geoms``,
-``tendons``, ``equality``, ``fluid``, ``sensors``, ``hull_caps``, ``hfields``.
+``tendons``, ``equality``, ``fluid``, ``sensors``, ``hull_caps``, ``hfields``; ``spring_stability`` (the spring
+method's joint gains against their stability limit).
 """
 
 import numbers
 import os
+import warnings
 
 import mujoco
 import numpy as np
@@ -66,12 +68,15 @@ from torchsim.io_mjcf.geoms import geom_fields
 from torchsim.io_mjcf.hull_caps import capped_model
 from torchsim.io_mjcf.joints import joint_fields
 from torchsim.io_mjcf.sensors import sensor_fields
+from torchsim.io_mjcf import spring_stability
 from torchsim.io_mjcf.subset import UnsupportedMJCFError, check_supported
 from torchsim.io_mjcf.tendons import tendon_fields
 from torchsim.methods import METHODS
 from torchsim.system import System
 
-__all__ = ["UnsupportedMJCFError", "load_mjcf", "mujoco_model"]
+__all__ = ["JOINT_DAMPING", "JOINT_STIFFNESS", "UnsupportedMJCFError", "load_mjcf", "mujoco_model"]
+
+JOINT_STIFFNESS, JOINT_DAMPING = 0.2, 0.5  # load_mjcf's defaults (spring method)
 
 
 def load_mjcf(
@@ -80,8 +85,8 @@ def load_mjcf(
     substeps: int | None = None,
     dtype: torch.dtype = torch.float32,
     device="cpu",
-    joint_stiffness: float = 0.2,
-    joint_damping: float = 0.5,
+    joint_stiffness: float | None = None,
+    joint_damping: float | None = None,
     contact_timeconst: float = 0.02,
     contact_model: str = "impulse",
     xpbd_iterations: int = 1,
@@ -98,8 +103,14 @@ def load_mjcf(
         substeps: substeps per ``<option timestep>``, a positive integer; default ``ceil(timestep / h)`` with h = 0.5 ms
             (ant: 20).
         joint_stiffness: spring method only: fraction of a joint's error its spring removes per substep
-            (gain ``stiffness / h^2 K^-1``, ``K`` the joint's inverse-inertia block).
-        joint_damping: spring method only: fraction of a joint's error rate its damper removes per substep.
+            (gain ``stiffness / h^2 K^-1``, ``K`` the joint's inverse-inertia block); default
+            ``JOINT_STIFFNESS = 0.2``.
+        joint_damping: spring method only: fraction of a joint's error rate its damper removes per substep;
+            default ``JOINT_DAMPING = 0.5``. Where the model's stability number ``lam`` makes
+            ``lam (stiffness + 2 damping)`` exceed 3.8 (the explicit springs' limit is 4: a light body carrying a
+            much heavier child, ``torchsim.io_mjcf.spring_stability``), the ones left to their defaults are lowered
+            in proportion to bring it to 3.2, with a warning; values given are kept, with a warning that the
+            springs may diverge.
         contact_timeconst: spring method only: MuJoCo's ``solref`` time constant [s] (0.02 s, its default):
             penetration is removed at a separating speed ``depth / (e timeconst)``, the peak speed of MuJoCo's
             critically damped contact pushing out a body that starts that deep (Baumgarte). A per-substep
@@ -139,10 +150,43 @@ def load_mjcf(
     sys = System(
         nq=m.nq, nv=m.nv, nu=m.nu, timestep=float(m.opt.timestep), substeps=int(substeps), method=method,
         gravity=torch.as_tensor(gravity), q0=torch.as_tensor(m.qpos0.copy()),
-        joint_stiffness=joint_stiffness, joint_damping=joint_damping, contact_timeconst=contact_timeconst, xpbd_iterations=xpbd_iterations,
-        contact_soft=contact_model == "soft", max_speed=max_speed, max_distance=max_distance, **fields,
+        joint_stiffness=JOINT_STIFFNESS if joint_stiffness is None else joint_stiffness,
+        joint_damping=JOINT_DAMPING if joint_damping is None else joint_damping, contact_timeconst=contact_timeconst,
+        xpbd_iterations=xpbd_iterations, contact_soft=contact_model == "soft", max_speed=max_speed,
+        max_distance=max_distance, **fields,
     )
+    if method == "spring":
+        sys = _stable_springs(sys, joint_stiffness is None, joint_damping is None)
     return sys.to(device=device, dtype=dtype)
+
+
+def _stable_springs(sys: System, free_stiffness: bool, free_damping: bool) -> System:
+    """``sys`` with its joint springs' ``joint_stiffness``/``joint_damping`` lowered where the stability number
+    demands it and the caller left them to their defaults (``free_*``), with a warning (:func:`load_mjcf`)."""
+    lam, body = spring_stability.stability_number(sys)
+    kappa, zeta = sys.joint_stiffness, sys.joint_damping
+    if lam * (kappa + 2.0 * zeta) <= spring_stability.LIMIT:
+        return sys
+    budget = spring_stability.TARGET / lam  # kappa + 2 zeta to reach
+    if free_stiffness and free_damping:
+        kappa, zeta = kappa * budget / (kappa + 2.0 * zeta), zeta * budget / (kappa + 2.0 * zeta)
+    elif free_damping and budget - kappa > 0.0:
+        zeta = (budget - kappa) / 2.0
+    elif free_stiffness and budget - 2.0 * zeta > 0.0:
+        kappa = budget - 2.0 * zeta
+    heavy = ": a light body carrying a much heavier child" if lam > spring_stability.USUAL else ""
+    where = f"stability number {lam:.2f} at qpos0 (its mode mostly moves body {sys.body_names[body]!r}{heavy})"
+    if (kappa, zeta) == (sys.joint_stiffness, sys.joint_damping):
+        warnings.warn(f"spring method: the explicit joint springs are at or beyond their stability limit, {where}: "
+                      f"{lam:.2f} x (joint_stiffness {kappa:g} + 2 x joint_damping {zeta:g}) = "
+                      f"{lam * (kappa + 2 * zeta):.2f} (4 or more diverges); joint_stiffness + 2 joint_damping <= "
+                      f"{budget:.3g} (or method='xpbd') keeps them stable", stacklevel=3)
+        return sys
+    warnings.warn(f"spring method: joint_stiffness {sys.joint_stiffness:g} -> {kappa:.3g} and joint_damping "
+                  f"{sys.joint_damping:g} -> {zeta:.3g}, {where}: at the defaults the explicit joint springs would "
+                  f"be at or beyond their stability limit ({lam:.2f} x (stiffness + 2 damping) = "
+                  f"{lam * (sys.joint_stiffness + 2 * sys.joint_damping):.2f}; 4 or more diverges)", stacklevel=3)
+    return sys.replace(joint_stiffness=kappa, joint_damping=zeta)
 
 
 def _check_substeps(substeps) -> None:
