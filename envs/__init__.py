@@ -6,6 +6,7 @@
 import builtins
 
 from torchsim.envs.base import ASSETS_DIR, TorchsimEnv, asset_path
+from torchsim.envs.fetch_reach import FetchReach
 from torchsim.envs.locomotion import Ant, HalfCheetah, Hopper, Humanoid, Walker2d
 from torchsim.envs.manipulation import Pusher, Reacher
 from torchsim.envs.nav import PointNav
@@ -45,8 +46,12 @@ PIXEL_ENVS = {
 NAV_ENVS = {"pointnav": PointNav}
 
 
+#: Physics tasks on third-party robot models, loaded from their packages (``pip install -e '.[robotics]'``), not
+#: bundled: gymnasium-robotics' FetchReach (``torchsim.envs.fetch_reach``).
+ROBOTICS_ENVS = {"fetch_reach": FetchReach}
+
 #: The kinds of env :func:`list` names.
-KINDS = {"physics": ENVS, "pixels": PIXEL_ENVS, "navigation": NAV_ENVS}
+KINDS = {"physics": ENVS, "pixels": PIXEL_ENVS, "navigation": NAV_ENVS, "robotics": ROBOTICS_ENVS}
 
 
 def list(kind: str = "all") -> builtins.list[str]:  # noqa: A001 - the public name asked for: torchsim.envs.list()
@@ -65,12 +70,16 @@ def make(name: str, num_envs: int = 1, device="cpu", **kwargs) -> TorchsimEnv:
     ``name`` may also be one of :data:`PIXEL_ENVS` or :data:`NAV_ENVS`."""
     if name in NAV_ENVS:
         return NAV_ENVS[name](num_envs, device=device, **kwargs)
+    if name in ROBOTICS_ENVS:
+        return ROBOTICS_ENVS[name](num_envs, device=device, **kwargs)
     if name in PIXEL_ENVS:
         task, defaults = PIXEL_ENVS[name]
         return ENVS[task](num_envs, device=device, **{**defaults, **kwargs})
     if name not in ENVS:
-        raise ValueError(f"unknown env {name!r}; available: {', '.join([*ENVS, *PIXEL_ENVS, *NAV_ENVS])}")
+        available = [*ENVS, *PIXEL_ENVS, *NAV_ENVS, *ROBOTICS_ENVS]
+        raise ValueError(f"unknown env {name!r}; available: {', '.join(available)}")
     return ENVS[name](num_envs, device=device, **kwargs)
 
 
-__all__ = ["ASSETS_DIR", "asset_path", "make", "list", "TorchsimEnv", *(cls.__name__ for cls in ENVS.values())]
+__all__ = ["ASSETS_DIR", "asset_path", "make", "list", "TorchsimEnv", *(cls.__name__ for cls in ENVS.values()),
+           "FetchReach"]

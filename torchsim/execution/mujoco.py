@@ -8,8 +8,12 @@ simulator the only difference (``python -m torchsim.evaluate physics=mujoco``, `
 Each call copies ``q`` and ``qd`` into MuJoCo's state, steps once with the control held, and rebuilds torchsim's
 body poses from MuJoCo's ``qpos``/``qvel`` (``torchsim.init``), so everything an env reads of a State is MuJoCo's.
 MuJoCo's solver warm start does not survive the round trip (each step starts its contact solve cold); the actuators'
-activations (``na > 0``) travel as ``State.act``.
+activations (``na > 0``) travel as ``State.act``. The System's mocap poses (``mocap_pos``/``mocap_quat``, one for all
+envs or per env) are MuJoCo's ``mocap_pos``/``mocap_quat`` in every step; ``for_system`` takes a System that differs
+in them only.
 """
+
+import dataclasses
 
 import mujoco
 import mujoco.rollout
@@ -54,9 +58,15 @@ class MujocoStepper:
         start[:, self._qpos] = state.q.detach().cpu().double().numpy()
         start[:, self._qvel] = state.qd.detach().cpu().double().numpy()
         start[:, self._act] = state.act.detach().cpu().double().numpy()
-        control = ctrl.detach().cpu().double().numpy()[:, None, :]
+        control, spec = ctrl.detach().cpu().double().numpy(), mujoco.mjtState.mjSTATE_CTRL
+        if self.model.nmocap:
+            mocap = [x.detach().expand(batch, *x.shape[-2:]).reshape(batch, -1).cpu().double().numpy()
+                     for x in (self.sys.mocap_pos, self.sys.mocap_quat)]
+            control = np.concatenate((control, *mocap), -1)
+            spec = spec | mujoco.mjtState.mjSTATE_MOCAP_POS | mujoco.mjtState.mjSTATE_MOCAP_QUAT
         out = np.empty((batch, 1, start.shape[1]))
-        mujoco.rollout.rollout(self.model, self._datas, start, control, nstep=1, state=out)
+        mujoco.rollout.rollout(self.model, self._datas, start, control[:, None, :], control_spec=int(spec), nstep=1,
+                               state=out)
         as_tensor = lambda x: torch.as_tensor(x, dtype=self.sys.dtype, device=self.sys.device)  # noqa: E731
         q, qd, act = (as_tensor(out[:, 0, part]) for part in (self._qpos, self._qvel, self._act))
         stepped = torch.as_tensor(out[:, 0, 0] > 1.0, device=q.device)
@@ -69,5 +79,14 @@ class MujocoStepper:
         return pipeline.init(self.sys, q, qd, act)._replace(diverged=state.diverged | ~ok)
 
     def for_system(self, sys: System) -> "MujocoStepper":
+        """This stepper for ``sys``, which may differ from its System in the mocap poses only (what an env's
+        ``set_mocap`` or a task moving its mocap targets makes)."""
+        if sys is self.sys:
+            return self
+        if all(getattr(sys, f.name) is getattr(self.sys, f.name) for f in dataclasses.fields(sys)
+               if f.name not in ("mocap_pos", "mocap_quat")):
+            other = object.__new__(MujocoStepper)
+            other.__dict__.update(self.__dict__, sys=sys)
+            return other
         raise NotImplementedError("MujocoStepper: per-env physics parameters (set_physics) are torchsim's; MuJoCo's "
                                   "model has one set")
