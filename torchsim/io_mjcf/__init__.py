@@ -174,7 +174,7 @@ def _stable_springs(sys: System, free_stiffness: bool, free_damping: bool) -> Sy
         zeta = (budget - kappa) / 2.0
     elif free_stiffness and budget - 2.0 * zeta > 0.0:
         kappa = budget - 2.0 * zeta
-    heavy = ": a light body carrying a much heavier child" if lam > spring_stability.USUAL else ""
+    heavy = ": a body carrying children heavier than itself about its joints" if lam > spring_stability.USUAL else ""
     where = f"stability number {lam:.2f} at qpos0 (its mode mostly moves body {sys.body_names[body]!r}{heavy})"
     if (kappa, zeta) == (sys.joint_stiffness, sys.joint_damping):
         warnings.warn(f"spring method: the explicit joint springs are at or beyond their stability limit, {where}: "
