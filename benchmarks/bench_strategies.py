@@ -1,5 +1,5 @@
 """Each ``torchsim.Stepper`` strategy against MuJoCo C, per model and batch: the measurements behind
-the table ``torchsim.execution.STRATEGIES`` (``docs/physics.md``, "How a step runs").
+the table ``torchsim.execution.STRATEGIES`` (``docs/execution.md``).
 
     python benchmarks/bench_strategies.py                                  # ant, humanoid, halfcheetah; 1/64/1024/4096
     python benchmarks/bench_strategies.py --models ant --simdlen 256       # AVX2 code on an AVX-512 machine

@@ -35,7 +35,7 @@ from torchsim.system import System
 
 #: (method, device type) -> the strategies that can run it, the fastest measured first (``eager`` runs anything).
 #: Spring on a CPU: the C++ kernel 2.0-2.5x MuJoCo C at 4096 envs where the compiled ``loop`` ran 0.4-0.6x, and
-#: 2.6-10x the inductor row graph it retired (``docs/physics.md``, "How a step runs"). XPBD: compiled substeps called from Python
+#: 2.6-10x the inductor row graph it retired (``docs/execution.md``). XPBD: compiled substeps called from Python
 #: (its step compiled as one loop kept gcc busy for over 10 minutes without finishing); no kernel yet.
 STRATEGIES = {
     ("spring", "cpu"): ("kernel", "loop"),
