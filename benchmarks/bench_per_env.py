@@ -1,4 +1,4 @@
-"""Per-env physics parameters (domain randomisation) against shared ones, side by side: issue 25, item 5.
+"""Per-env physics parameters (domain randomisation) against shared ones, side by side.
 
     python benchmarks/bench_per_env.py                          # ant, humanoid, halfcheetah at 64, 1024 and 4096 envs
 

@@ -1,4 +1,4 @@
-"""UR5e reach (issue 5): bring the UR5e's tool frame to a random reachable target; the arm comes in through URDF."""
+"""UR5e reach: bring the UR5e's tool frame to a random reachable target; the arm comes in through URDF."""
 
 import math
 import xml.etree.ElementTree as ET

@@ -1,4 +1,4 @@
-"""Robot model check (issue 53): every MJCF file in dm_control's, gymnasium-robotics' and robosuite's published
+"""Robot model check: every MJCF file in dm_control's, gymnasium-robotics' and robosuite's published
 wheels that MuJoCo compiles on its own, loaded by torchsim, and each loaded movable one rolled out passively
 against MuJoCo as ``studies/check_third_party.py`` does (same rollout, errors and verdict; its docstring).
 

@@ -1,4 +1,4 @@
-"""Third-party model check (issue 27, item 5): every standalone environment MJCF in gymnasium's, Brax's and
+"""Third-party model check: every standalone environment MJCF in gymnasium's, Brax's and
 dm_control's published wheels, loaded by MuJoCo and by torchsim, and each loaded one rolled out passively.
 
 The wheels come from the package registry (``pip download --no-deps``) into a cache directory and are unzipped there;

@@ -1,5 +1,5 @@
 """Conservation against the time step: drift of linear momentum, angular momentum and energy for torchsim's two
-methods and MuJoCo's Euler, RK4 and implicitfast integrators on the same conservative scenes (issue 27, item 7).
+methods and MuJoCo's Euler, RK4 and implicitfast integrators on the same conservative scenes.
 
     OMP_NUM_THREADS=1 python studies/conservation.py            # sweep -> docs/conservation.csv, docs/conservation.png
     python studies/conservation.py --replot                     # redraw the chart from the CSV

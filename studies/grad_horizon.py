@@ -1,4 +1,4 @@
-"""Gradients through Ant rollouts (issue 31, items 1 and 2): their norm against the horizon, and the cost of
+"""Gradients through Ant rollouts: their norm against the horizon, and the cost of
 recording and back-propagating a rollout (time and memory), with and without checkpointing the steps.
 
     OMP_NUM_THREADS=1 python studies/grad_horizon.py horizon            # -> docs/gradients_horizon.{csv,png}

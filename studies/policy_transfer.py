@@ -1,4 +1,4 @@
-"""Policy transfer as a fidelity measure (issue 27, item 6): a policy trained on one simulator's physics, run on the
+"""Policy transfer as a fidelity measure: a policy trained on one simulator's physics, run on the
 other's, with the same task code.
 
 For each checkpoint (a training run's ``checkpoints/last.pt``) the deterministic policy runs ``--episodes`` episodes

@@ -1,5 +1,5 @@
 """Soak: every env at its default settings, thousands of envs for an episode's length of uniform random and of
-constant full-range actions, counting the envs whose physics diverged (issue 27, item 8; docs/stability.md).
+constant full-range actions, counting the envs whose physics diverged (docs/stability.md).
 
     python studies/soak.py                                   # every env, 3 action modes, 4096 envs x 1000 steps
     python studies/soak.py --envs ant --modes plus --num-envs 4096

@@ -1,4 +1,4 @@
-"""System identification through torchsim's gradients (issue 31, item 4): recover masses and a friction
+"""System identification through torchsim's gradients: recover masses and a friction
 coefficient from a MuJoCo trajectory of a model whose masses and friction were perturbed.
 
     OMP_NUM_THREADS=1 python studies/sysid.py            # prints the fit and the recovered values

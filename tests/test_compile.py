@@ -1,4 +1,4 @@
-"""``torch.compile(torchsim.step, fullgraph=True)``: one graph, same numbers as eager (issue 2, item 9).
+"""``torch.compile(torchsim.step, fullgraph=True)``: one graph, same numbers as eager.
 
 Compiling takes minutes per graph on 2 cores, so this file traces one small model (a hinged arm that hits the
 floor, and a falling box; 2 substeps) with dynamo for both methods (one graph, no breaks) and compiles it with

@@ -1,4 +1,4 @@
-"""Gradients of short rollouts against finite differences (issue 31, item 1; float64, CPU, eager; docs/gradients.md).
+"""Gradients of short rollouts against finite differences (float64, CPU, eager; docs/gradients.md).
 
 What is differentiated: a rollout of ``H`` steps from ``init(sys, q0, qd0)`` under controls ``ctrl (H, B, nu)``, and
 two scalars of it: a random projection of the final ``(q, qd)`` and a reward summed over the steps

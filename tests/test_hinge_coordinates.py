@@ -1,4 +1,4 @@
-"""Hinge angles are continuous through full turns, as MuJoCo's ``qpos`` (issue 27, item 1): a pendulum and a
+"""Hinge angles are continuous through full turns, as MuJoCo's ``qpos``: a pendulum and a
 cart-pole spun over the top several times, against MuJoCo on the same MJCF, float64."""
 
 import mujoco

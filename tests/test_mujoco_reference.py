@@ -1,5 +1,5 @@
 """Physics against MuJoCo on the same MJCF and against closed forms: pendulum period, triple-pendulum trajectory,
-a box resting and sliding on a plane, and the ant standing under gravity (issue 2, items 2, 4, 6, 7 and 10)."""
+a box resting and sliding on a plane, and the ant standing under gravity."""
 
 import mujoco
 import numpy as np

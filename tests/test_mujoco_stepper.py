@@ -1,4 +1,4 @@
-"""``MujocoStepper``: an env's task code on MuJoCo C's physics (policy transfer, issue 27 item 6)."""
+"""``MujocoStepper``: an env's task code on MuJoCo C's physics (policy transfer)."""
 
 import mujoco
 import numpy as np

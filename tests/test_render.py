@@ -1,8 +1,8 @@
-"""torchsim.render against closed forms and against MuJoCo's own renderer (issue 28, items 1-2).
+"""torchsim.render against closed forms and against MuJoCo's own renderer.
 
 The MuJoCo reference images come from ``mujoco.Renderer`` (depth and segmentation rendering) in a child process
 with ``MUJOCO_GL=egl`` (``osmesa`` as a fallback): MuJoCo picks its GL backend when it is first imported, which in a
-test session has already happened. Agreement criteria (issue 28): a pixel's depth agrees when within 1 cm or 0.5% of
+test session has already happened. Agreement criteria: a pixel's depth agrees when within 1 cm or 0.5% of
 MuJoCo's; at least 99% of pixels must agree, and at least 99% must see the same geom. The residue is where MuJoCo's
 tessellated spheres and capsules (``vis.quality``) and our exact surfaces disagree on which geom a silhouette pixel
 sees. Errors fail it (checked by breaking the code on purpose): rays shifted by half a pixel sideways fail every model

@@ -1,4 +1,4 @@
-"""Mesh geoms in torchsim.render (issue 53, item 6): BVH ray casting against brute force, and depth and segmentation
+"""Mesh geoms in torchsim.render: BVH ray casting against brute force, and depth and segmentation
 against MuJoCo's own renderer.
 
 MuJoCo's images come from ``mujoco.Renderer`` in a child process (``MUJOCO_GL=egl``, ``osmesa`` as a fallback;

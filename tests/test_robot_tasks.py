@@ -1,4 +1,4 @@
-"""Issue 5's robot tasks: UR5e reach (URDF arm under PD targets, reachable targets), Grasp and Fetch (Brax v1's claw
+"""The robot tasks: UR5e reach (URDF arm under PD targets, reachable targets), Grasp and Fetch (Brax v1's claw
 and dog). Rewards, successes and target respawns on constructed states; per-env targets through resets; the
 models against MuJoCo. (The spec, partial-reset and collector checks run for them in tests/test_envs.py.)"""
 

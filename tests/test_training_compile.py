@@ -1,4 +1,4 @@
-"""The compiled engine as training uses it (issue 25): evaluation reuses the training batch's compiled step, a second
+"""The compiled engine as training uses it: evaluation reuses the training batch's compiled step, a second
 process loads the compiled step (the C++ step kernel, and a row graph with inductor's code) from the on-disk cache, the compiled env step equals the eager one with
 per-env physics parameters, and ``torch.compile(torchsim.step)`` warns that it is not the fast path.
 

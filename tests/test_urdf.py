@@ -1,4 +1,4 @@
-"""URDF loading (issue 5): the UR5e against pytorch-kinematics, the UR DH table and MuJoCo's own URDF import,
+"""URDF loading: the UR5e against pytorch-kinematics, the UR DH table and MuJoCo's own URDF import,
 the URDF -> MJCF translation element by element, and the bad-input errors."""
 
 import functools
