@@ -18,50 +18,16 @@ import pytest
 import torch
 
 import torchsim
-from models import ANT, F64, HUMANOID
+from rest_scenes import F64, ant_rest_start, ant_xml, humanoid_lying_start, humanoid_lying_xml, mujoco_rest
 
 SPLIT = 8  # MuJoCo's converged answer: the model's step / SPLIT
 SETTLE_S = 0.3  # torchsim's settling from MuJoCo's rest pose [s]
 
 
-def _ant_start(m: mujoco.MjModel) -> np.ndarray:
-    """Home pose with each ankle on its limit nearest zero (+-30 deg), the feet 2 mm above the floor."""
-    d = mujoco.MjData(m)
-    mujoco.mj_resetDataKeyframe(m, d, 0)
-    ankles = [m.jnt_qposadr[j] for j in range(m.njnt) if m.joint(j).name.startswith("ankle")]
-    d.qpos[ankles] = np.sign(d.qpos[ankles]) * np.deg2rad(30.0)
-    mujoco.mj_forward(m, d)
-    low = np.inf
-    for g in np.flatnonzero(m.geom_contype):  # the four lower-leg capsules
-        axis_z = d.geom_xmat[g].reshape(3, 3)[2, 2]
-        low = min(low, d.geom_xpos[g, 2] - m.geom_size[g, 1] * abs(axis_z) - m.geom_size[g, 0])
-    d.qpos[2] += 2e-3 - low
-    return d.qpos.copy()
-
-
-def _humanoid_lying_xml() -> str:
-    xml = HUMANOID.read_text()
-    colliding = xml.replace('contype="0" conaffinity="0" condim="3"', 'contype="1" conaffinity="0" condim="3"')
-    assert colliding != xml
-    return colliding
-
-
-def _humanoid_start(m: mujoco.MjModel) -> np.ndarray:
-    """qpos0 joints, on its back (pitched -90 deg about y), torso 0.1 m up."""
-    q = m.qpos0.copy()
-    q[2], q[3:7] = 0.1, [np.cos(-np.pi / 4), 0.0, np.sin(-np.pi / 4), 0.0]
-    return q
-
-
 def _mujoco_rest(xml: str, q0: np.ndarray, seconds: float, split: int) -> np.ndarray:
-    m = mujoco.MjModel.from_xml_string(xml)
-    m.opt.timestep /= split
-    d = mujoco.MjData(m)
-    d.qpos[:] = q0
-    for _ in range(round(seconds / m.opt.timestep)):
-        mujoco.mj_step(m, d)
-    assert np.abs(d.qvel).max() < 1e-3  # at rest (the humanoid's arms creep at 7e-4)
-    return d.qpos.copy()
+    qpos, speed = mujoco_rest(xml, q0, seconds, split)
+    assert speed < 1e-3  # at rest (the humanoid's arms creep at 7e-4)
+    return qpos
 
 
 def _rest_heights(xml: str, start, seconds: float, contact_model: str):
@@ -83,12 +49,12 @@ def _rest_heights(xml: str, start, seconds: float, contact_model: str):
 
 @pytest.fixture(scope="module")
 def ant():
-    return _rest_heights(ANT.read_text(), _ant_start, 3.0, "soft")  # the Ant env's contact model
+    return _rest_heights(ant_xml(), ant_rest_start, 3.0, "soft")  # the Ant env's contact model
 
 
 @pytest.fixture(scope="module")
 def humanoid():
-    return _rest_heights(_humanoid_lying_xml(), _humanoid_start, 6.0, "impulse")  # the Humanoid env's
+    return _rest_heights(humanoid_lying_xml(), humanoid_lying_start, 6.0, "impulse")  # the Humanoid env's
 
 
 def test_mujoco_rest_heights_have_converged(ant, humanoid):
