@@ -51,11 +51,11 @@ def brute_force_pairs(m: mujoco.MjModel) -> dict:
             condim = max(m.geom_condim[g1], m.geom_condim[g2])
             friction = max(m.geom_friction[g1, 0], m.geom_friction[g2, 0])
             margin = max(m.geom_margin[g1], m.geom_margin[g2])
-            pairs[(g1, g2)] = (_sliding_friction(m, g1, g2, condim, friction), margin, *_mixed(m, g1, g2),
+            pairs[(g1, g2)] = (_sliding_friction(condim, friction), margin, *_mixed(m, g1, g2),
                                _invweight(m, g1, g2))
     for p in range(m.npair):
         g1, g2 = sorted((m.pair_geom1[p], m.pair_geom2[p]))
-        pairs[(g1, g2)] = (_sliding_friction(m, g1, g2, m.pair_dim[p], m.pair_friction[p, 0]), m.pair_margin[p],
+        pairs[(g1, g2)] = (_sliding_friction(m.pair_dim[p], m.pair_friction[p, 0]), m.pair_margin[p],
                            m.pair_solref[p].copy(), m.pair_solimp[p].copy(), _invweight(m, g1, g2))
     return pairs
 
