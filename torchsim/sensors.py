@@ -142,24 +142,33 @@ def _subtree_values(sys: System, frames: _Frames, group: SensorGroup) -> torch.T
     pos, quat, vel, ang = frames.at(sys.sensor_subtree_frame)
     mass = lanes.param(sys.sensor_subtree_mass, 1)
     per_row = _per_row(sys)
-    total = per_row(mass[None])[0].clamp_min(1e-30)  # a row without terms (a massless subtree)
-    com = per_row(mass * pos) / total
+    com = _mass_mean(per_row, mass, pos)
     if group.kind == "subtreecom":
         return com.index_select(-2, group.obj)
-    com_vel = per_row(mass * vel) / total
+    com_vel = _mass_mean(per_row, mass, vel)
     if group.kind == "subtreelinvel":
         return com_vel.index_select(-2, group.obj)
-    inertia = lanes.param(sys.sensor_subtree_inertia, 1, 1)  # principal moments, along the frame's axes
-    spin = spatial.quat_rotate(quat, inertia * spatial.quat_rotate_inv(quat, ang))
     row = sys.sensor_subtree_row
     orbit = mass * spatial.cross(pos - com.index_select(-2, row), vel - com_vel.index_select(-2, row))
-    return per_row(spin + orbit).index_select(-2, group.obj)
+    return per_row(_spin(sys, quat, ang) + orbit).index_select(-2, group.obj)
 
 
 def _per_row(sys: System):
     """Sums over each subtree row's terms: ``(C, K, B) -> (C, R, B)`` (``System.sensor_subtree_*``)."""
     row, rows = sys.sensor_subtree_row, sys.sensor_subtree_contact.shape[0]  # static shapes, no device read
     return lambda x: x.new_zeros(x.shape[0], rows, x.shape[-1]).index_add(-2, row, x)
+
+
+def _mass_mean(per_row, mass: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Each subtree row's mass-weighted mean of its terms' ``x (3, K, B)``; about the origin for a row without mass
+    (a massless subtree)."""
+    return per_row(mass * x) / per_row(mass[None])[0].clamp_min(1e-30)
+
+
+def _spin(sys: System, quat: torch.Tensor, ang: torch.Tensor) -> torch.Tensor:
+    """Each subtree term's angular momentum about its own COM, ``R I R^T w`` (principal moments along its frame)."""
+    inertia = lanes.param(sys.sensor_subtree_inertia, 1, 1)
+    return spatial.quat_rotate(quat, inertia * spatial.quat_rotate_inv(quat, ang))
 
 
 def _accelerations(sys: System, frames: _Frames, after: _Frames, group: SensorGroup) -> torch.Tensor:
@@ -234,15 +243,10 @@ def _wrenches(sys: System, frames: _Frames, after: _Frames, contacts: _SubstepCo
     pos_next, quat_next, vel_next, ang_next = after.at(sys.sensor_subtree_frame)
     pos = 0.5 * (pos + pos_next)  # the moment arms midway through the step, as the means are
     mass = lanes.param(sys.sensor_subtree_mass, 1)
-    inertia = lanes.param(sys.sensor_subtree_inertia, 1, 1)  # principal moments, along the frame's axes
-
-    def spin(q, w):
-        return spatial.quat_rotate(q, inertia * spatial.quat_rotate_inv(q, w))
-
     per_row = _per_row(sys)
-    com = per_row(mass * pos) / per_row(mass[None])[0].clamp_min(1e-30)  # a massless subtree: about the origin
+    com = _mass_mean(per_row, mass, pos)
     term_force = mass * ((vel_next - vel) / sys.timestep - sys.gravity.view(3, 1, 1))
-    spin_rate = (spin(quat_next, ang_next) - spin(quat, ang)) / sys.timestep
+    spin_rate = (_spin(sys, quat_next, ang_next) - _spin(sys, quat, ang)) / sys.timestep
     force = per_row(term_force)
     torque = per_row(spin_rate + spatial.cross(pos - com.index_select(-2, sys.sensor_subtree_row), term_force))
     if contacts is not None:
