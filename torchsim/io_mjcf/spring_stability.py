@@ -34,15 +34,11 @@ TARGET = 3.2
 USUAL = 3.1
 
 
-def _skew(r: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
-
-
 def stability_number(sys: System) -> tuple[float, int]:
     """``lam``, the largest eigenvalue of ``M^-1 H`` at ``qpos0`` (module docstring), and the body (System index)
     that carries most of its mode's kinetic energy; ``(0.0, -1)`` for a model without spring joints, ``(nan, -1)``
     where an inertia is not finite (the loader then leaves the gains as they are)."""
-    from torchsim import rigid
+    from torchsim import rigid, spatial
     from torchsim.kinematics import forward, joint_frames, with_world
     from torchsim.methods.spring import joint_gain
 
@@ -67,7 +63,7 @@ def stability_number(sys: System) -> tuple[float, int]:
         for b, r, sign in ((int(child[j]), r_child[:, j], 1.0), (int(parent[j]), r_parent[:, j], -1.0)):
             if b < n:  # anchor error: v + w x r = v - [r]x w, rotation error: w
                 block = np.eye(6)
-                block[:3, 3:] = -_skew(r)
+                block[:3, 3:] = -spatial.skew(torch.from_numpy(r)).numpy()
                 e[:, 6 * slot[b]:6 * slot[b] + 6] += sign * block
         h += e.T @ g @ e
     inv_mass = inv.mass[..., 0].numpy().reshape(-1)
