@@ -420,18 +420,29 @@ class TorchsimEnv(EnvBase):
                  bad: torch.Tensor | None = None):
         """One env step from ``state``, ``task`` and the episodes' step counts ``steps (B,)`` under ``ctrl``, as plain
         tensors, writing nothing to the env (so it is differentiable: ``torchsim.algos.apg`` unrolls it): the new
-        state and task, the reward (0 where the physics diverged), terminated (the task's, or diverged; ``bad
+        state and task, the reward (``_diverged_reward`` where the physics diverged), terminated (the task's, or diverged; ``bad
         (B,)`` marks envs to treat as diverged), truncated and the new step counts."""
         before = state
+        stepper, physics_ctrl = self._physics_inputs(state, ctrl)
         for _ in range(self.frame_skip):
-            state = self.stepper(state, ctrl)
+            state = stepper(state, physics_ctrl)
         if bad is not None:
             state = state._replace(diverged=state.diverged | bad)
-        reward = torch.where(state.diverged, 0.0, self._reward(before, state, ctrl))
+        steps = steps + 1
+        reward = torch.where(state.diverged, self._diverged_reward(steps), self._reward(before, state, ctrl))
         terminated = self._terminated(state) | state.diverged
         task = self._next_task(state, task)
-        steps = steps + 1
         return state, task, reward, terminated, steps >= self.episode_length, steps
+
+    def _physics_inputs(self, state: State, ctrl: torch.Tensor):
+        """``(stepper, controls)`` the physics steps under for action ``ctrl`` from ``state``: the env's stepper and
+        ``ctrl`` itself; a task that drives its robot otherwise (FetchReach: mocap targets) returns its own."""
+        return self.stepper, ctrl
+
+    def _diverged_reward(self, steps: torch.Tensor):
+        """The reward of a step whose physics diverged (the episode then ends), ``steps (B,)`` the episodes' step
+        counts after it: 0. A task whose rewards are never positive scores it lower, or ending would pay."""
+        return 0.0
 
     def compile_step(self, **options) -> None:
         """Run :meth:`_advance` (physics, reward, termination, task: a step's arithmetic) as ``torch.compile(**options)``

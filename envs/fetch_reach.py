@@ -11,7 +11,6 @@ import mujoco
 import numpy as np
 import torch
 
-import torchsim
 from torchsim import spatial
 from torchsim.envs.base import TorchsimEnv
 
@@ -210,23 +209,17 @@ class FetchReach(TorchsimEnv):
         return ((pos[:, 0] + ACTION_SCALE * action[:, :3])[:, None],
                 (mocap_quat / mocap_quat.norm(dim=-1, keepdim=True))[:, None])
 
-    def _advance(self, state, task, ctrl, steps, bad=None):
-        before = state
+    def _physics_inputs(self, state, ctrl):
+        """The action moves the mocap target (``mocap_target``); the model has no actuators to control."""
         mocap_pos, mocap_quat = self.mocap_target(state, ctrl)
-        stepper = self.stepper.for_system(self.sys.replace(mocap_pos=mocap_pos, mocap_quat=mocap_quat))
-        no_ctrl = ctrl[:, :0]
-        for _ in range(self.frame_skip):
-            state = stepper(state, no_ctrl)
-        if bad is not None:
-            state = state._replace(diverged=state.diverged | bad)
-        steps = steps + 1
-        # a diverged episode ends (as in every task) and scores the worst the rest of it could: left at 0, a reward
-        # that is never positive would make blowing up the physics the best move (a policy trained so learnt it)
-        worst = -(self.episode_length - steps + 1).to(state.q.dtype) * DIVERGED_DISTANCE
-        worst = worst if self.reward_type == "dense" else worst / DIVERGED_DISTANCE
-        reward = torch.where(state.diverged, worst, self._reward(before, state, ctrl))
-        terminated = self._terminated(state) | state.diverged
-        return state, self._next_task(state, task), reward, terminated, steps >= self.episode_length, steps
+        return self.stepper.for_system(self.sys.replace(mocap_pos=mocap_pos, mocap_quat=mocap_quat)), ctrl[:, :0]
+
+    def _diverged_reward(self, steps):
+        """The worst the rest of the episode could score, ``DIVERGED_DISTANCE`` (sparse: 1) lost for each step left
+        including this one: left at 0, a reward that is never positive would make blowing up the physics the best
+        move (a policy trained so learnt it)."""
+        worst = -(self.episode_length - steps + 1).to(self.sys.dtype)
+        return worst * DIVERGED_DISTANCE if self.reward_type == "dense" else worst
 
     def grip_site(self, state):
         """World position ``(B, 3)`` of the ``robot0:grip`` site."""
