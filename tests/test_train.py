@@ -37,7 +37,8 @@ def tiny(algo, *overrides):
 
 # Budgets in env steps, not minutes, so a slow or shared machine does the same work (and gets the same result) as
 # an idle one. Seed 0 reaches the limit at 45,056 (PPO, 50-step episodes) and 4,160 (SAC, 100-step episodes) env
-# steps (SAC at its first evaluation); the budgets leave 2x (PPO) and 4x (SAC) margin. SAC's episodes are 100 steps, not 200: as far from random play (5.5) and the untrained policy (26), in half the time.
+# steps (SAC at its first evaluation); the budgets leave 2x (PPO) and 4x (SAC) margin. SAC's episodes are 100
+# steps, not 200: as far from random play (5.5) and the untrained policy (26), in half the time.
 # PPO's batch is set here (256 envs x 16 steps, 4 epochs x 8 minibatches, as the eager recipes ran) rather than
 # taken from the tuned config, which is sized for the compiled engine's 2048 envs.
 SMALL_PPO = ["algo.num_envs=256", "algo.unroll=16", "algo.epochs=4", "algo.minibatches=8", "obs_norm_decay=1.0",
