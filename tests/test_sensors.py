@@ -264,6 +264,26 @@ def test_sensors_on_mocap_bodies_are_not_computed():
             torchsim.sensor(sys, state, name)
 
 
+def test_sensors_on_moving_cameras_are_not_computed():
+    """A camera that tracks or targets (``mode`` other than ``fixed``) moves on its own: a frame sensor on it or
+    relative to it, or an acceleration sensor on it, is named in the warning and raises; one on a fixed camera reads."""
+    xml = """<mujoco><worldbody>
+      <body><freejoint/><geom size=".1"/><camera name="fixed"/><camera name="tracking" mode="track"/></body>
+      </worldbody><sensor><framepos name="on_fixed" objtype="camera" objname="fixed"/>
+        <framepos name="on_tracking" objtype="camera" objname="tracking"/>
+        <framepos name="relative_to_tracking" objtype="camera" objname="fixed" reftype="camera" refname="tracking"/>
+        <framelinacc name="acc_on_tracking" objtype="camera" objname="tracking"/></sensor></mujoco>"""
+    with pytest.warns(UserWarning, match="camera is not fixed to its body") as caught:
+        sys = torchsim.load_mjcf(xml, dtype=F64)
+    state = torchsim.init(sys, torch.tensor([[0, 0, 1, 1, 0, 0, 0.0]], dtype=F64), torch.zeros(1, 6, dtype=F64))
+    for name in ("on_tracking", "relative_to_tracking", "acc_on_tracking"):
+        assert repr(name) in str(caught[0].message)
+        with pytest.raises(torchsim.UnsupportedMJCFError, match=name):
+            torchsim.sensor(sys, state, name)
+    assert "'on_fixed'" not in str(caught[0].message)
+    np.testing.assert_allclose(torchsim.sensor(sys, state, "on_fixed").numpy(), [[0, 0, 1]], atol=1e-12)
+
+
 def test_reading_by_name(random_states):
     """One sensor by name and the dict of all are slices of ``sensordata``; a sensor that does not read actuator
     forces needs no controls, one that does names what it needs."""

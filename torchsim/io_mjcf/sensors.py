@@ -180,17 +180,14 @@ def _not_computed(m: mujoco.MjModel, i: int, kind: str | None) -> str:
     if kind is None:
         return WHY.get(int(m.sensor_type[i]), "it is not implemented")
     obj_type, obj = int(m.sensor_objtype[i]), int(m.sensor_objid[i])
-    if kind in FRAME_KINDS:
-        objects = [(obj_type, obj)] + ([(int(m.sensor_reftype[i]), int(m.sensor_refid[i]))]
-                                       if m.sensor_refid[i] >= 0 else [])
+    if kind in FRAME_KINDS or kind == "touch" or kind in ACC_KINDS:
+        objects = [(obj_type, obj)]
+        if kind in FRAME_KINDS and m.sensor_refid[i] >= 0:  # a frame sensor may be relative to another object
+            objects.append((int(m.sensor_reftype[i]), int(m.sensor_refid[i])))
         if any(t == Obj.mjOBJ_CAMERA and m.cam_mode[o] != int(mujoco.mjtCamLight.mjCAMLIGHT_FIXED)
                for t, o in objects):
             return "its camera is not fixed to its body (mode)"
         bodies = [_body(m, t, o) for t, o in objects]
-    elif kind == "touch" or kind in ACC_KINDS:
-        if obj_type == Obj.mjOBJ_CAMERA and m.cam_mode[obj] != int(mujoco.mjtCamLight.mjCAMLIGHT_FIXED):
-            return "its camera is not fixed to its body (mode)"
-        bodies = [_body(m, obj_type, obj)]
     elif kind in WRENCH_KINDS:
         bodies = _subtree_bodies(m, int(m.site_bodyid[obj]))
         why = _wrench_not_computed(m, int(m.site_bodyid[obj]))
