@@ -23,8 +23,8 @@ As MuJoCo's, the linear ones read the acceleration less gravity (an acceleromete
 fixed to the world reads 0). ``force`` and ``torque`` are MuJoCo's ``cfrc_int`` at the site: the wrench the site's
 body's parent puts on the body's subtree, by Newton-Euler over the subtree's bodies (their mean rates of change of
 momentum and angular momentum over the step, less gravity) less the contact forces on it, in the site's frame. The
-contact forces are the spring method's (``torchsim.contact_forces``; another method is refused where the model has
-contacts), averaged over the step's substeps: a model with contacts steps again for them even when given
+contact forces these and ``touch`` read are the spring method's (``torchsim.contact_forces``; another method is
+refused where the model has contacts), averaged over the step's substeps: they step again for them even when given
 ``next_state``.
 
 The step's accelerations are torchsim's dynamics, not a closed form: right after ``init`` the spring method's joints
@@ -34,12 +34,10 @@ first step, 0.02 ten steps on), and a body still settling into a contact reads i
 Which types are computed, and why the others are not: ``torchsim.io_mjcf.sensors``. ``System`` documents the fields.
 """
 
-from typing import NamedTuple
-
 import torch
 
 from torchsim import activation, actuators, lanes, spatial, tendon_paths, tendons
-from torchsim.contact_forces import ContactForces, contact_forces
+from torchsim.contact_forces import ContactForces, SubstepContacts, mean_contact_forces, step_contacts
 from torchsim.io_mjcf.sensors import ACC_KINDS, FRAME_KINDS, SUBTREE_KINDS, WRENCH_KINDS
 from torchsim.io_mjcf.subset import UnsupportedMJCFError
 from torchsim.kinematics import _addresses, with_world
@@ -193,42 +191,7 @@ def _in_mean_frame(quat: torch.Tensor, quat_next: torch.Tensor, x: torch.Tensor)
     return 0.5 * (spatial.quat_rotate_inv(quat, x) + spatial.quat_rotate_inv(quat_next, x))
 
 
-class _SubstepContacts(NamedTuple):
-    """The contacts of each substep of a step, lanes layout, as the spring method applies them: points ``pos (3, C,
-    B)``, ``force (3, C, B)`` on body a over the substep [N] (body b takes its opposite), ext bodies ``body_a,
-    body_b (C,)`` (``body_b`` None where every pair is against the static world)."""
-
-    pos: list
-    force: list
-    body_a: torch.Tensor
-    body_b: torch.Tensor | None
-
-
-def _step_recording_contacts(sys: System, state: State, ctrl: torch.Tensor):
-    """``torchsim.step``'s next State, by the same outline (``pipeline.run_substeps``), and the contact forces each of
-    its substeps applies (the method's ``contact_forces``, which ``torchsim.contact_forces`` reads for the first).
-
-    Force and torque sensors take the mean of these over the step: the first substep's alone would not match the
-    step's mean accelerations where a contact's impulse changes from substep to substep (a lever resting its tip
-    on the floor: ~4 N off on 11 N)."""
-    method = METHODS[sys.method]
-    if method.contact_forces is None:
-        raise NotImplementedError(f"force and torque sensors read contact forces, read out for the spring method "
-                                  f"only, not {sys.method!r}")
-    pos, force, bodies_ab = [], [], []
-
-    def substep(sys, bodies, ctrl, terms, h):
-        con, push = method.contact_forces(sys, bodies, ctrl, terms, h)
-        pos.append(con.pos)
-        force.append(torch.where(con.depth > 0, push, 0.0))
-        bodies_ab[:] = [con.body_a, con.body_b]
-        return method.substep(sys, bodies, ctrl, terms, h)
-
-    after = run_substeps(sys, state, ctrl, substep=substep)
-    return after, _SubstepContacts(pos, force, *bodies_ab)
-
-
-def _wrenches(sys: System, frames: _Frames, after: _Frames, contacts: _SubstepContacts | None,
+def _wrenches(sys: System, frames: _Frames, after: _Frames, contacts: SubstepContacts | None,
               group: SensorGroup) -> torch.Tensor:
     """``force`` or ``torque`` ``(3, S, B)``: MuJoCo's ``cfrc_int`` of the site's body at the site, in its frame.
 
@@ -289,8 +252,8 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple,
     reads_frames = FRAME_KINDS + SUBTREE_KINDS + STEP_KINDS + ("touch",)
     frames = _Frames(sys, state) if any(g.kind in reads_frames for g in groups) else None
     contacts = None
-    if sys.contact_groups and any(g.kind in WRENCH_KINDS for g in groups):  # static: a model with contacts
-        next_state, contacts = _step_recording_contacts(sys, state, ctrl)  # the step again, for its contacts
+    if any(g.kind == "touch" for g in groups) or (sys.contact_groups and any(g.kind in WRENCH_KINDS for g in groups)):
+        next_state, contacts = step_contacts(sys, state, ctrl)  # the step again, for its contacts
     if any(g.kind in STEP_KINDS for g in groups):
         if next_state is None:
             next_state = step(sys, state, ctrl)
@@ -334,7 +297,7 @@ def _read(sys: System, state: State, ctrl: torch.Tensor | None, groups: tuple,
         elif kind in SUBTREE_KINDS:
             values = _subtree_values(sys, frames, group)
         elif kind == "touch":
-            values = _touch(sys, contact_forces(sys, state, ctrl), frames, group)
+            values = _touch(sys, mean_contact_forces(sys, contacts), frames, group)
         elif kind in ACC_KINDS:
             values = _accelerations(sys, frames, after, group)
         elif kind in WRENCH_KINDS:
