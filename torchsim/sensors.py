@@ -41,8 +41,7 @@ from torchsim.contact_forces import ContactForces, SubstepContacts, mean_contact
 from torchsim.io_mjcf.sensors import ACC_KINDS, FRAME_KINDS, SUBTREE_KINDS, WRENCH_KINDS
 from torchsim.io_mjcf.subset import UnsupportedMJCFError
 from torchsim.kinematics import _addresses, with_world
-from torchsim.methods import METHODS
-from torchsim.pipeline import check, run_substeps, step, to_lanes_state
+from torchsim.pipeline import check, step, to_lanes_state
 from torchsim.render import raycast
 from torchsim.state import State
 from torchsim.system import SensorGroup, System
