@@ -32,7 +32,8 @@ class JointFrames(NamedTuple):
     Attributes:
         q: (J, 6, B) coordinates of the 3 slide then 3 hinge slots, relative to the zero frame (no ``ref``).
         qd: (J, 6, B) their rates.
-        axes: (3, J, 6, B) world direction of each slot (slide direction or hinge axis; see ``all_slots`` of
+        axes: (3, J, 6, B) world direction of each slot (slide direction or hinge axis; a general joint's hinge
+            slots hold its dual rows, the couples of unit generalized forces, ``_General``; see ``all_slots`` of
             :func:`joint_frames`).
         r_parent, r_child: (3, J, B) world vectors from each body's COM to the joint anchor.
         lin_err: (3, J, B) constrained part of the child-anchor offset from the parent anchor (world) [m].
@@ -43,9 +44,9 @@ class JointFrames(NamedTuple):
         ang_rel: (3, J, B) child angular velocity relative to the parent, child frame (a ball joint's qvel).
         hinge_dual: (3, 3, J, B) inverse of the hinge axes as columns: row ``hinge_dual[k]`` maps a relative
             rotation (world) onto hinge slot k (measured once here because the joint-space solves need it too).
-        anchor_turn: (3, J, B) velocity of the parent anchor per unit rate of the first hinge (axis ``axes`` slot 3)
-            [m/rad], nonzero for 2 hinges at different anchors (``torchsim.hinge_anchors``); None where the model
-            has no such joint (``System.jnt_has_offsets``).
+        anchor_turn: (3, 3, J, B) ``T`` [m/rad]: velocity of the parent anchor per unit relative rotation rate of
+            the child (world), nonzero for hinges at different anchors (``torchsim.hinge_anchors``); None where the
+            model has no such joint (``System.jnt_has_offsets``).
     """
 
     q: torch.Tensor
@@ -134,17 +135,34 @@ def joint_frames(sys: System, bodies: Bodies, joints: torch.Tensor | None = None
     a2_c = spatial.matvec(child.rot, axes[:, :, 1]) if two or coordinates else None  # a2 turning with the child
     n12 = spatial.normalize(spatial.cross(a1_w, a2_c)) if two else torch.zeros_like(delta)
     turn = None
-    if sys.jnt_has_offsets:  # the parent anchor turns with the first hinge (only 2-hinge joints have offsets)
+    if sys.jnt_has_offsets:  # the parent anchor turns with the hinges (2 orthogonal ones here, general ones below)
         offset, turn = hinge_anchors.parent_offset(lanes.param(sel(sys.jnt_anchor_offset), 1, 1), a1_w, n12)
         r_parent, delta = r_parent + offset, delta - offset
+    quat_rel = spatial.quat_mul(spatial.quat_conj(quat0), child.quat) if coordinates or sys.jnt_has_general else None
+    general = None
+    if sys.jnt_has_general:
+        general = _general_hinges(sys, sel, parent, child, quat_rel, mode, axes, axes0, n12)
+        is_general = lanes.param(sel(sys.jnt_general), 1, 0)  # (J, 1)
+        r_parent = torch.where(is_general, r_parent + general.offset, r_parent)
+        delta = torch.where(is_general, delta - general.offset, delta)
+        if sys.jnt_has_offsets:
+            turn = torch.where(is_general, general.turn, turn)
     constraint = _constraint_errors(sys, sel, child, quat0, rot0, delta, mode, axes, a1_w, a2_c, n12)
+    if general is not None and two:  # 2 oblique hinges keep a2 at its angle to a1, not at a right angle
+        tilt0 = torch.asin(torch.clamp(spatial.dot(axes[:, :, 0], axes[:, :, 1]), -1.0, 1.0))
+        constraint = constraint._replace(ang_err=torch.where(
+            is_general, constraint.ang_err + mode[:, 2] * tilt0 * n12, constraint.ang_err))
     if not coordinates:
         return JointFrames(None, None, None, r_parent, r_child, *constraint, None, None, None, turn)
 
-    quat_rel = spatial.quat_mul(spatial.quat_conj(quat0), child.quat)
     ang_rel_w = child.ang - parent.ang
     q_hinge, qd_hinge, hinge_axes, hinge_dual = _hinge_coordinates(
         sys, sel, child, quat_rel, ang_rel_w, mode, axes, axes0, a1_w, a2_w, a2_c, n12)
+    if general is not None:  # a general joint's hinge slots hold its dual rows (_General)
+        q_hinge = torch.where(is_general, general.q, q_hinge)
+        hinge_dual = torch.where(is_general, general.dual, hinge_dual)
+        hinge_axes = torch.where(is_general.unsqueeze(-2), hinge_dual.permute(1, 2, 0, 3), hinge_axes)
+        qd_hinge = spatial.matvec(hinge_dual, ang_rel_w)
     if sys.jnt_has_slides:
         q_slide, qd_slide, slide_axes = _slide_coordinates(sys, sel, parent, child, rot0, delta, r_parent, r_child)
     else:
@@ -227,6 +245,59 @@ def _hinge_coordinates(sys, sel, child: _Ends, quat_rel, ang_rel_w, mode, axes, 
             hinge_dual = hinge_axes.movedim(-2, 0)
         qd_hinge = spatial.matvec(hinge_dual, ang_rel_w)
     return torch.stack((q1, q2, q3)), qd_hinge, hinge_axes, hinge_dual
+
+
+class _General(NamedTuple):
+    """The general joints' (``System.jnt_general``) hinge angles ``q (3, J, B)`` [rad], dual rows ``dual (3, 3, J,
+    B)``, parent-anchor offset ``offset (3, J, B)`` [m] and its ``turn (3, 3, J, B)`` [m/rad]
+    (``torchsim.hinge_anchors``); other joints' values are meaningless.
+
+    Their hinge slots' ``JointFrames.axes`` hold the dual rows ``g_k``, not the axes: a couple ``tau g_k`` on the
+    child (minus it on the parent) does work ``tau`` per unit rate of hinge k alone (``g_k . c_j = delta_kj``), so
+    generalized forces (springs, actuators, armature) act on the bodies as MuJoCo's ``J^T tau``. Where the axes are
+    orthonormal the two coincide."""
+
+    q: torch.Tensor
+    dual: torch.Tensor
+    offset: torch.Tensor
+    turn: torch.Tensor
+
+
+def _general_hinges(sys, sel, parent: _Ends, child: _Ends, quat_rel, mode, axes, axes0, n12) -> _General:
+    """A body turned by 2 or 3 hinges on any (non-parallel, for 3 non-coplanar) axes at any anchors, in MuJoCo's
+    order: ``R = R1(q1) R2(q2) R3(q3)`` (zero frame), each ``Rk`` about the body-frame axis ``ak``.
+
+    2 hinges: ``q1`` turns the zero frame's a2 to the child's about a1, ``q2`` the child's view of a1 back to a1
+    about a2. 3 hinges (Davenport's angles): ``a1 . R a3 = A cos q2 + B sin q2 + C`` (``A = a1.a3 - (a1.a2)(a2.a3)``,
+    ``B = a1.(a2 x a3)``, ``C = (a1.a2)(a2.a3)``) gives ``q2`` on the branch through 0, which spans a half turn
+    between the two gimbal locks (for orthogonal axes ``q2 = asin(a1 . R a3)``, the 3-hinge joints'); then ``q1``
+    turns ``R2 a3`` to ``R a3`` about a1 and ``q3`` turns ``R2^T a1`` to ``R^T a1`` about a3, backwards. The world
+    axes are ``c1`` (the parent's), ``c2 = R1 a2`` and ``c3`` (the child's)."""
+    three = mode[:, 3] > 0  # (J, 1): 3 hinges, else 2
+    a1, a2, a3 = axes.unbind(-2)  # (3, J, 1), zero frame
+    a1_w, a2_w = axes0[:, :, 0], axes0[:, :, 1]
+    a2_c, a3_c = (spatial.matvec(child.rot, a) for a in (a2, a3))
+    rt_a1 = spatial.quat_rotate_inv(quat_rel, a1)  # a1 seen from the child
+    r_a3 = spatial.quat_rotate(quat_rel, a3)  # the child's a3 in the zero frame
+    k12, k23 = spatial.dot(a1, a2), spatial.dot(a2, a3)
+    cos_part, sin_part = spatial.dot(a1, a3) - k12 * k23, spatial.dot(a1, spatial.cross(a2, a3))
+    amplitude = torch.sqrt(cos_part * cos_part + sin_part * sin_part)
+    reach = torch.clamp((spatial.dot(a1, r_a3) - k12 * k23) / amplitude, -1.0, 1.0)
+    branch = torch.acos(reach)
+    mid = torch.atan2(sin_part, cos_part) - torch.where(sin_part > 0, branch, -branch)
+    q1 = torch.where(three, spatial.angle_about(a1, hinge_anchors.turn_vector(a3, a2, mid), r_a3),
+                     spatial.angle_about(a1_w, a2_w, a2_c))
+    q2 = torch.where(three, mid, -spatial.angle_about(a2, a1, rt_a1))
+    q3 = torch.where(three, -spatial.angle_about(a3, hinge_anchors.turn_vector(a1, a2, -mid), rt_a1), 0.0)
+    # 2 hinges: the child's a2 and the unit normal of a1 and it complete the columns (as for orthogonal ones)
+    c2 = torch.where(three, hinge_anchors.turn_vector(a2_w, a1_w, q1), a2_c)
+    cols = torch.stack((a1_w, c2, torch.where(three, a3_c, n12)), -2)  # (3, J, 3, B)
+    dual = spatial.inv3(cols.movedim(-2, 1))
+    steps = lanes.param(sel(sys.jnt_anchor_steps), 2, 1)  # (3, J, 2, 1): d1 parent frame, d2 child frame
+    steps_world = torch.stack((spatial.matvec(parent.rot, steps[:, :, 0]), spatial.matvec(child.rot, steps[:, :, 1])),
+                              1)
+    offset, turn = hinge_anchors.chain_offset(steps_world, cols, dual, q1, q3)
+    return _General(torch.stack((q1, q2, q3)), dual, offset, turn)
 
 
 def _slide_coordinates(sys, sel, parent: _Ends, child: _Ends, rot0, delta, r_parent, r_child):
@@ -376,10 +447,13 @@ def forward(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
         # hinges compose about a1, a2, a3 in order (unused slots have zero angle)
         rel = ball_q[:, level]
         ang_rel = torch.zeros_like(xp)
+        turned = []  # the zero frame turned by the first k + 1 hinges, world
         for k in range(3):
             axis = axes[:, :, k]
             ang_rel = ang_rel + spatial.quat_rotate(spatial.quat_mul(quat0, rel), axis) * sqd[3 + k]
             rel = spatial.quat_mul(rel, spatial.axis_angle_to_quat(axis, sq[3 + k]))
+            if sys.jnt_has_general:
+                turned.append(spatial.quat_mul(quat0, rel))
         qc = spatial.quat_mul(quat0, rel)
         wc = wp + ang_rel + spatial.quat_rotate(qc, ball_qd[:, level])
         slide_cols = spatial.transpose(lanes.param(sys.jnt_slide_axes[level], 1, 2))  # the slide axes as columns
@@ -393,10 +467,29 @@ def forward(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
             slide_rate = slide_rate + turn * sqd[3]
         anchor = anchor_zero + spatial.quat_rotate(quat0, slide)
         v_anchor = vp + spatial.cross(wp, anchor - xp) + spatial.quat_rotate(quat0, slide_rate)
+        if sys.jnt_has_general:  # the anchor steps d1, d2 turned by the hinges before them (hinge_anchors)
+            offset, rate = _general_anchor(sys, level, qp, quat0, turned, axes, sqd[3:])
+            is_general = lanes.param(sys.jnt_general[level], 1, 0)
+            anchor = torch.where(is_general, anchor + offset, anchor)
+            v_anchor = torch.where(is_general, v_anchor + spatial.cross(wp, offset) + rate, v_anchor)
         xc = anchor - spatial.quat_rotate(qc, lanes.param(sys.jnt_anchor_child[level], 1, 1))
         x_pos[:, c], x_quat[:, c], xd_ang[:, c] = xc, qc, wc
         xd_vel[:, c] = v_anchor + spatial.cross(wc, xc - anchor)
     return Bodies(x_pos[:, :n], x_quat[:, :n], xd_vel[:, :n], xd_ang[:, :n])
+
+
+def _general_anchor(sys: System, level, quat_parent, quat0, turned, axes, rates):
+    """The general joints' parent-anchor offset ``e = R1 d1 + R1 R2 d2`` [m] and its velocity relative to the
+    parent [m/s] (world), from the zero frame ``quat0``, the frames ``turned`` by the first 1, 2 hinges, the axes
+    (zero frame) and the hinge ``rates (3, K, B)``, for the joints ``level`` of :func:`forward`."""
+    steps = lanes.param(sys.jnt_anchor_steps[level], 2, 1)  # (3, K, 2, 1): d1 parent frame, d2 child frame
+    step_1_zero = spatial.quat_rotate_inv(quat0, spatial.quat_rotate(quat_parent, steps[:, :, 0]))  # zero frame
+    step_1 = spatial.quat_rotate(turned[0], step_1_zero)
+    step_2 = spatial.quat_rotate(turned[1], steps[:, :, 1])
+    c1 = spatial.quat_rotate(quat0, axes[:, :, 0])
+    c2 = spatial.quat_rotate(turned[0], axes[:, :, 1])
+    offset = step_1 + step_2
+    return offset, spatial.cross(c1, offset) * rates[0] + spatial.cross(c2, step_2) * rates[1]
 
 
 def mj_body_poses(sys: System, x_pos: torch.Tensor, x_quat: torch.Tensor):

@@ -98,9 +98,13 @@ class System:
         jnt_anchor_offset: (J, 3) [m] for 2 hinges at different anchors, the second anchor minus the first in
             components along a1..a3 (jnt_axes); zero otherwise. jnt_anchor_child is the second anchor, and the
             parent anchor (the first) turns by this offset with the first hinge (``torchsim.hinge_anchors``).
+        jnt_general: (J,) bool, 2 hinges on non-orthogonal axes or 3 hinges not sharing one anchor and orthogonal
+            axes: their angles and anchors are composed in general form (``kinematics.joint_frames``).
+        jnt_anchor_steps: (J, 2, 3) [m] for general joints, the second anchor minus the first (parent frame, as at
+            q = 0) and the third minus the second (child frame); zero otherwise (``hinge_anchors.chain_offset``).
         jnt_quat0: (J, 4) child frame in the parent frame at q = 0.
         jnt_axes: (J, 3, 3) hinge axes a1..a3 (child frame); unused rows hold padding axes completing a basis.
-            The rows are orthonormal (the loader requires a joint's hinges to be mutually orthogonal).
+            The rows are orthonormal except for general joints (``jnt_general``), whose rows are their unit axes.
         jnt_mode: (J, 5) one-hot angular mode: [weld, 1 hinge, 2 hinges, 3 hinges, ball].
         jnt_a2_sign: (J,) handedness a1 . (a2 x a3) of 3-hinge joints (1 otherwise).
         jnt_slide_axes: (J, 3, 3) slide axes (rows, zero frame; unused rows zero).
@@ -110,8 +114,8 @@ class System:
         jnt_levels: index tensors of the joints at each tree depth (free bodies are roots).
         jnt_slot_dof: (J, 6) dof index of each joint slot, -1 where the slot is not a dof.
         jnt_kinds: 5 bools, which angular modes occur; jnt_has_slides: whether any slide occurs; jnt_has_offsets:
-        whether any joint has a nonzero jnt_anchor_offset (static structure that lets the step skip work for joint
-        kinds the model lacks).
+        whether any joint has a nonzero jnt_anchor_offset or jnt_anchor_steps; jnt_has_general: whether any joint is
+        general (static structure that lets the step skip work for joint kinds the model lacks).
     Dofs (hinge and slide dofs of constrained joints):
         dof_flat: (D,) index into a joint's 6 coordinate slots (3 slides, then 3 hinges), flattened as j*6+slot.
         dof_is_hinge: (D,) bool.  dof_qpos, dof_qvel: (D,) addresses in qpos/qvel.
@@ -284,6 +288,8 @@ class System:
     jnt_anchor_child: torch.Tensor
     jnt_anchor_parent: torch.Tensor
     jnt_anchor_offset: torch.Tensor
+    jnt_general: torch.Tensor
+    jnt_anchor_steps: torch.Tensor
     jnt_quat0: torch.Tensor
     jnt_axes: torch.Tensor
     jnt_mode: torch.Tensor
@@ -297,6 +303,7 @@ class System:
     jnt_kinds: tuple
     jnt_has_slides: bool
     jnt_has_offsets: bool
+    jnt_has_general: bool
     # dofs
     dof_flat: torch.Tensor
     dof_is_hinge: torch.Tensor

@@ -4,9 +4,8 @@ Supported subset (anything else raises ``UnsupportedMJCFError`` naming the eleme
 is harmless):
 - bodies: any tree; bodies without joints are fused into their parent (mass, COM and inertia combined).
 - joints per body: one ``free`` (top-level bodies), one ``ball`` (no limit), or up to 3 ``slide`` followed by up
-  to 3 ``hinge`` (2 hinges: orthogonal axes; 3 hinges: mutually orthogonal axes). The hinges share one anchor
-  (``pos``), except that a body with 2 hinges and no slides may give them different anchors
-  (``torchsim.hinge_anchors``).
+  to 3 ``hinge``. Without slides the hinges may have any anchors (``pos``) and any axes, not parallel (for 3 not in
+  one plane) (``torchsim.hinge_anchors``); after slides they share one anchor on orthogonal axes.
   ``range``, ``damping``, ``armature``, ``stiffness``/``springref`` and ``ref`` on hinges and slides.
   ``frictionloss`` on hinges and slides (not on free or ball joints, nor on tendons). ``damping`` and
   ``armature`` on free joints (armature only where the body's origin is its centre of mass), ``damping``,

@@ -17,7 +17,9 @@ _FREE, _BALL, _SLIDE, _HINGE = (int(mujoco.mjtJoint.mjJNT_FREE), int(mujoco.mjtJ
 #: per-joint fields (``jnt_*``) and the shape of one joint's value; ``child`` and ``parent`` are body indices
 JOINT_SHAPES = {"child": (), "parent": (), "anchor_child": (3,), "anchor_parent": (3,), "anchor_offset": (3,),
                 "quat0": (4,), "axes": (3, 3), "mode": (5,), "a2_sign": (), "slide_axes": (3, 3), "slide_pinv": (3, 3),
-                "lin_proj": (3, 3)}
+                "lin_proj": (3, 3), "general": (), "anchor_steps": (2, 3)}
+#: dtypes of the per-joint fields that are not float
+JOINT_DTYPES = {"child": np.int64, "parent": np.int64, "general": bool}
 #: per-dof fields (``dof_*``) and their dtypes
 DOF_DTYPES = {"flat": np.int64, "is_hinge": bool, "qpos": np.int64, "qvel": np.int64, "limited": bool,
               "range": float, "damping": float, "armature": float, "stiffness": float, "springref": float,
@@ -82,15 +84,27 @@ def _check_joints(m, b, jids) -> str:
             "one ball, or up to 3 slides followed by up to 3 hinges")
     hinges = [j for j in jids if m.jnt_type[j] == _HINGE]
     axes = _unit_axes(m, hinges)
-    # 2 hinges may have different anchors (torchsim.hinge_anchors), unless after slides; 3 hinges must share one
-    if len(hinges) == 2 and _anchor_offset(m, hinges).any() and n_slide:
-        raise UnsupportedMJCFError(f"hinges of body {body!r} at different anchors (pos) after slide joints are not "
-                                   "supported")
-    if len(hinges) == 3 and any(np.linalg.norm(m.jnt_pos[j] - m.jnt_pos[hinges[0]]) > 1e-9 for j in hinges):
-        raise UnsupportedMJCFError(f"the 3 hinges of body {body!r} must share one anchor (pos); 2 hinges may differ")
-    if len(axes) >= 2 and any(abs(axes[i] @ axes[k]) > 1e-6 for i in range(len(axes)) for k in range(i)):
-        raise UnsupportedMJCFError(f"the {len(axes)} hinge axes of body {body!r} must be mutually orthogonal")
+    # any 2 or 3 hinges compose (torchsim.hinge_anchors), but only the plain form (2 orthogonal hinges, or 3 sharing
+    # one anchor on orthogonal axes) at a single anchor may follow slides
+    if n_slide and (_is_general(m, hinges) or _anchor_offset(m, hinges).any()):
+        raise UnsupportedMJCFError(f"hinges of body {body!r} at different anchors (pos) or on non-orthogonal axes "
+                                   "after slide joints are not supported")
+    if any(np.linalg.norm(np.cross(axes[i], axes[k])) < 1e-6 for i in range(len(axes)) for k in range(i)):
+        raise UnsupportedMJCFError(f"body {body!r} has parallel hinge axes, which are not supported: its orientation "
+                                   "gives only the sum of their angles")
+    if len(axes) == 3 and abs(axes[0] @ np.cross(axes[1], axes[2])) < 1e-6:
+        raise UnsupportedMJCFError(f"the 3 hinge axes of body {body!r} lie in one plane: they cannot turn it about "
+                                   "the plane's normal at q = 0 (a gimbal lock)")
     return "slides_hinges"
+
+
+def _is_general(m, hinges) -> bool:
+    """Whether ``hinges`` (of one body) need the general form (``System.jnt_general``): 2 hinges on non-orthogonal
+    axes, or 3 hinges on non-orthogonal axes or not all at one anchor."""
+    axes = _unit_axes(m, hinges)
+    oblique = any(abs(axes[i] @ axes[k]) > 1e-6 for i in range(len(axes)) for k in range(i))
+    apart = any(np.linalg.norm(m.jnt_pos[j] - m.jnt_pos[hinges[0]]) > 1e-9 for j in hinges)
+    return len(hinges) >= 2 and oblique or len(hinges) == 3 and apart
 
 
 def _passive(m, j) -> tuple:
@@ -104,9 +118,9 @@ def _unit_axes(m, jids) -> list:
 
 
 def _anchor_offset(m, hinges) -> np.ndarray:
-    """The second hinge's anchor minus the first's (body frame) [m] for 2 ``hinges``, exact zeros within 1e-9
-    (so a model whose hinges share their anchors is flagged as such, ``System.jnt_has_offsets``); else zeros."""
-    if len(hinges) != 2:
+    """The second hinge's anchor minus the first's (body frame) [m] for 2 orthogonal ``hinges``, exact zeros within
+    1e-9 (so a model whose hinges share their anchors is flagged as such, ``System.jnt_has_offsets``); else zeros."""
+    if len(hinges) != 2 or _is_general(m, hinges):
         return np.zeros(3)
     d = m.jnt_pos[hinges[1]] - m.jnt_pos[hinges[0]]
     return d if np.linalg.norm(d) > 1e-9 else np.zeros(3)
@@ -117,27 +131,35 @@ def _joint(m, b, jids, fused: FusedBodies, is_ball: bool) -> dict:
     hinge_axes = _unit_axes(m, [j for j in jids if m.jnt_type[j] == _HINGE])
     slides = _unit_axes(m, [j for j in jids if m.jnt_type[j] == _SLIDE])
     com = fused.com[fused.index[b]]
-    # the anchor is the hinge/ball pivot; a slide-only joint may use any child point, so take the COM. With 2
-    # hinges at different anchors the child's anchor is the second one, the parent's the first (hinge_anchors)
+    # the anchor is the hinge/ball pivot; a slide-only joint may use any child point, so take the COM. With hinges
+    # at different anchors the child's anchor is the last one, the parent's the first (hinge_anchors)
     hinges = [j for j in jids if m.jnt_type[j] == _HINGE]
     pivot = hinges[:1] or (jids if is_ball else [])
     anchor = m.jnt_pos[pivot[0]] if pivot else com
     offset = _anchor_offset(m, hinges)
+    general = _is_general(m, hinges)
     parent = m.body_parentid[b]
     pos0, quat0 = compose(*fused.frame[parent], m.body_pos[b], m.body_quat[b])
+    child_anchor = m.jnt_pos[hinges[-1]] if general else anchor + offset
+    steps = np.zeros((2, 3))
+    if general:
+        steps[0] = quat_mat(quat0) @ (m.jnt_pos[hinges[1]] - anchor)
+        steps[1] = m.jnt_pos[hinges[2]] - m.jnt_pos[hinges[1]] if len(hinges) == 3 else 0.0
+        steps[np.linalg.norm(steps, axis=1) < 1e-9] = 0.0  # a shared anchor is no step (System.jnt_has_offsets)
     slide_cols = np.zeros((3, 3))
     slide_cols[:, : len(slides)] = np.array(slides).T if slides else 0
     slide_pinv = np.zeros((3, 3))
     slide_pinv[: len(slides)] = np.linalg.pinv(slide_cols[:, : len(slides)]) if slides else np.zeros((0, 3))
     return dict(
         child=fused.index[b], parent=fused.body_of(m, parent),
-        anchor_child=anchor + offset - com, anchor_parent=pos0 + quat_mat(quat0) @ anchor - fused.com_of(m, parent),
-        anchor_offset=_hinge_basis(hinge_axes) @ offset if hinge_axes else offset,
+        anchor_child=child_anchor - com, anchor_parent=pos0 + quat_mat(quat0) @ anchor - fused.com_of(m, parent),
+        anchor_offset=np.zeros(3) if general else _hinge_basis(hinge_axes) @ offset if hinge_axes else offset,
         quat0=quat0, axes=np.eye(3) if is_ball or not hinge_axes else _hinge_basis(hinge_axes),
         mode=np.eye(5)[4 if is_ball else len(hinge_axes)],
         # +-1: the handedness of 3 hinge axes
         a2_sign=hinge_axes[0] @ np.cross(hinge_axes[1], hinge_axes[2]) if len(hinge_axes) == 3 else 1.0,
         slide_axes=slide_cols.T, slide_pinv=slide_pinv, lin_proj=np.eye(3) - slide_cols @ slide_pinv,
+        general=general, anchor_steps=steps,
     )
 
 
@@ -147,8 +169,10 @@ def _hinge_basis(axes: list) -> np.ndarray:
         p = np.cross(axes[0], [1.0, 0, 0] if abs(axes[0][0]) < 0.9 else [0, 1.0, 0])
         p = p / np.linalg.norm(p)
         return np.stack([axes[0], p, np.cross(axes[0], p)])
-    if len(axes) == 2:
-        return np.stack([axes[0], axes[1], np.cross(axes[0], axes[1])])
+    if len(axes) == 2:  # a3 = a1 x a2, unit where the axes are oblique
+        normal = np.cross(axes[0], axes[1])
+        oblique = abs(axes[0] @ axes[1]) > 1e-6
+        return np.stack([axes[0], axes[1], normal / np.linalg.norm(normal) if oblique else normal])
     return np.stack(axes)
 
 
@@ -170,7 +194,7 @@ def _tensors(joints: list, dofs: list, ball: list, free: list, num_bodies: int) 
     def column(rows, key, dtype, shape=()):
         return torch.as_tensor(np.array([r[key] for r in rows], dtype=dtype).reshape(-1, *shape))
 
-    out = {f"jnt_{k}": column(joints, k, np.int64 if k in ("child", "parent") else float, shape)
+    out = {f"jnt_{k}": column(joints, k, JOINT_DTYPES.get(k, float), shape)
            for k, shape in JOINT_SHAPES.items()}
     out |= {f"dof_{k}": column(dofs, k, dtype, DOF_SHAPES.get(k, ())) for k, dtype in DOF_DTYPES.items()}
     out["dof_limits"] = bool(out["dof_limited"].any())
@@ -186,7 +210,8 @@ def _tensors(joints: list, dofs: list, ball: list, free: list, num_bodies: int) 
     out["jnt_slot_dof"] = torch.as_tensor(slot_dof.reshape(-1, 6))
     out["jnt_kinds"] = tuple(bool(k) for k in out["jnt_mode"].numpy().any(0))
     out["jnt_has_slides"] = bool(out["jnt_slide_axes"].any())
-    out["jnt_has_offsets"] = bool(out["jnt_anchor_offset"].any())
+    out["jnt_has_offsets"] = bool(out["jnt_anchor_offset"].any() or out["jnt_anchor_steps"].any())
+    out["jnt_has_general"] = bool(out["jnt_general"].any())
     frictional = out["dof_frictionloss"] != 0
     out["dof_friction_hinges"] = torch.nonzero(frictional & out["dof_is_hinge"]).reshape(-1)
     out["dof_friction_slides"] = bool((frictional & ~out["dof_is_hinge"]).any())

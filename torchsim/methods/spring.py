@@ -66,7 +66,7 @@ def joint_gain(sys: System, fr: JointFrames, inv: rigid.InverseInertia) -> torch
     m, i = m.unflatten(-2, (2, -1)), i.unflatten(-2, (2, -1))  # (2, J, 1 | B), (3, 3, 2, J, B): child, parent
     r = torch.stack((fr.r_child, fr.r_parent), 1)
     if sys.jnt_has_offsets:  # an anchor turning with the first hinge adds to the lever (torchsim.hinge_anchors)
-        lever = hinge_anchors.lever(r, fr.anchor_turn.unsqueeze(1), fr.axes[:, :, 3].unsqueeze(1))
+        lever = hinge_anchors.lever(r, fr.anchor_turn.unsqueeze(2))
         k_lin = m.sum(-3) * spatial.eye3(m, 2) + spatial.mm(lever, i, spatial.transpose(lever)).sum(-3)
     else:
         k_lin = m.sum(-3) * spatial.eye3(m, 2) - spatial.skew_sandwich(r, i).sum(-3)
@@ -111,8 +111,7 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tenso
     twist = torch.stack((vel + spatial.cross(ang, r), ang), 1)  # (3, lin/ang, child/parent, J, B) at the anchor
     rate = twist[:, :, 0] - twist[:, :, 1]
     if sys.jnt_has_offsets:  # the parent anchor also moves as the first hinge turns (torchsim.hinge_anchors)
-        a1 = fr.axes[:, :, 3]
-        turn_rate = hinge_anchors.turn_rate(fr.anchor_turn, a1, ang[:, 0], ang[:, 1])
+        turn_rate = hinge_anchors.turn_rate(fr.anchor_turn, ang[:, 0], ang[:, 1])
         rate = torch.stack((rate[:, 0] - turn_rate, rate[:, 1]), 1)
     err = torch.stack((fr.lin_err, fr.ang_err), 1)
     kappa, zeta = sys.joint_stiffness / (h * h), sys.joint_damping / h
@@ -120,7 +119,7 @@ def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tenso
     correction = spatial.matvec(spatial.transpose(rot), kappa * err + zeta * rate)
     force, torque = (-spatial.matvec(rot, spatial.matvec(gain, correction))).unbind(1)
     if sys.jnt_has_offsets:
-        torque = torque + hinge_anchors.turn_moment(fr.anchor_turn, a1, force)
+        torque = torque + hinge_anchors.turn_moment(fr.anchor_turn, force)
     moment = spatial.cross(r, force.unsqueeze(1)) + torque.unsqueeze(1)  # about each body's COM
     wrench = torch.cat((force.unsqueeze(1).expand_as(moment), moment))  # (6, child/parent, J, B)
     zero = bodies.x_pos.new_zeros((6,) + bodies.x_pos.shape[1:])

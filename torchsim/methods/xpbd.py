@@ -76,8 +76,7 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, limit
         r_c, r_p = fr.r_child, fr.r_parent
         eye = spatial.eye3(m_c, 2)
         if sys.jnt_has_offsets:  # an anchor turning with the first hinge adds to the levers (torchsim.hinge_anchors)
-            a1 = fr.axes[:, :, 3]
-            l_c, l_p = (hinge_anchors.lever(r, fr.anchor_turn, a1) for r in (r_c, r_p))
+            l_c, l_p = (hinge_anchors.lever(r, fr.anchor_turn) for r in (r_c, r_p))
             k_ll = ((m_c + m_p) * eye + spatial.mm(l_c, i_c, spatial.transpose(l_c))
                     + spatial.mm(l_p, i_p, spatial.transpose(l_p)))
             k_la = spatial.mm(l_c, i_c) + spatial.mm(l_p, i_p)
@@ -117,7 +116,7 @@ def project_joints(sys: System, bodies: Bodies, inv: rigid.InverseInertia, limit
         p_lin = spatial.matvec(a_inv, rhs_l - spatial.matvec(b, mu))
         p_ang = spatial.matvec(gt, mu)
         if sys.jnt_has_offsets:
-            p_ang = p_ang + hinge_anchors.turn_moment(fr.anchor_turn, a1, p_lin)
+            p_ang = p_ang + hinge_anchors.turn_moment(fr.anchor_turn, p_lin)
         bodies = rigid.apply_pair_position(bodies, inv, child, parent, fr.r_child, fr.r_parent, p_lin, p_ang)
     return bodies if limits is None else (bodies, impulse)
 
