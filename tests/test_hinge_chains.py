@@ -167,3 +167,42 @@ def test_degenerate_layouts_are_refused(joints, message):
     """Hinge layouts the general form cannot represent are refused by name rather than simulated wrong."""
     with pytest.raises(torchsim.UnsupportedMJCFError, match=message):
         torchsim.load_mjcf(_scene(joints), dtype=F64)
+
+
+# Three orthogonal hinges at one anchor (the humanoid's hips) keep their own form, whose hinge slots apply a
+# generalized force as a couple along the hinge's axis, not its dual row: a motor on the last hinge then also pushes
+# on the first (by sin of the middle angle). Routed through the general form (jnt_general) the same joint is 4.3e-4
+# rad off MuJoCo over 0.3 s (MuJoCo's own dt vs dt/4: 4.3e-4); in its own form 0.029 rad. Kept so that the shipped
+# humanoid's steps stay as they are until that change is made on purpose.
+MOTORED_BALL = """
+<mujoco><option timestep="0.002" gravity="0 0 0"/><worldbody>
+  <body name="link" pos="0 0 1">
+    <joint type="hinge" axis="1 0 0"/><joint type="hinge" axis="0 0 1"/><joint name="y" type="hinge" axis="0 1 0"/>
+    <geom type="capsule" fromto="0 0 0 0.03 0.02 -0.3" size="0.04"/>
+  </body></worldbody><actuator><motor joint="y"/></actuator></mujoco>"""
+
+
+@pytest.mark.xfail(strict=True, reason="orthogonal 3-hinge joints apply generalized forces along their axes")
+def test_motor_on_orthogonal_three_hinges_follows_mujoco():
+    """A motor on the last of 3 orthogonal hinges, middle hinge at 0.6 rad: within 2x MuJoCo's dt vs dt/4."""
+    q0, steps = np.array([0.2, 0.6, 0.1]), 150
+    m = mujoco.MjModel.from_xml_string(MOTORED_BALL)
+    paths = []
+    for divide in (1, 4):
+        m.opt.timestep = 0.002 / divide
+        d = mujoco.MjData(m)
+        d.qpos[:], d.ctrl[:] = q0, 0.05
+        paths.append([])
+        for _ in range(steps):
+            for _ in range(divide):
+                mujoco.mj_step(m, d)
+            paths[-1].append(d.qpos.copy())
+    ref, fine = np.array(paths)
+    sys = torchsim.load_mjcf(MOTORED_BALL, dtype=F64)
+    state = torchsim.init(sys, torch.tensor(q0)[None], torch.zeros(1, 3, dtype=F64))
+    ctrl = torch.full((1, 1), 0.05, dtype=F64)
+    err = 0.0
+    for k in range(steps):
+        state = torchsim.step(sys, state, ctrl)
+        err = max(err, np.abs(state.q[0].numpy() - fine[k]).max())
+    assert err < 2 * np.abs(ref - fine).max()
