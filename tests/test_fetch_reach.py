@@ -53,11 +53,11 @@ ACTIONS = np.random.default_rng(0).uniform(-1.0, 1.0, (6, 4))
 
 
 def test_first_steps_track_the_package_in_mujoco():
-    """The same action sequence (6 random full-range actions, 0.24 s): the env's grip site within 3 cm of the
-    package's in MuJoCo (with its contacts) at every step.
-    Measured 1.0-2.3 cm: torchsim's weld tilts the gripper when it is pulled sideways, where MuJoCo's holds its
-    orientation, and its arm joints give under the weld's pull (the spring method lowers their stiffness for the light
-    wrist roll link carrying the gripper); the package's own path moves 5-9 cm in the meantime."""
+    """The same action sequence (6 random full-range actions, 0.24 s): the env's grip site within 3 mm of the
+    package's in MuJoCo (with its contacts) at every step, while the package's own path moves 5-9 cm.
+    Measured 0.1-1.4 mm; twice that covers the arm joints' give under the weld's pull (the spring method lowers
+    their stiffness for the light wrist roll link carrying the gripper). With the weld sized on the bare gripper,
+    without its wrist roll's 1 kg m^2 of armature, it was 1.0-2.3 cm (``torchsim.welds``)."""
     env = envs.make("fetch_reach", num_envs=1, dtype=F64)
     reference, grip0 = _package_steps(mujoco.MjModel.from_xml_string(fetch_reach.reach_model(REACH_XML, contacts=True)),
                                       ACTIONS)
@@ -68,8 +68,28 @@ def test_first_steps_track_the_package_in_mujoco():
     np.testing.assert_allclose(got[0], env.initial_grip.numpy(), atol=1e-9)
     error = np.linalg.norm(got - reference, axis=-1)
     print("grip site vs the package in MuJoCo [mm]:", np.round(error * 1000, 1))
-    assert error.max() < 0.03
+    assert error.max() < 3e-3
     assert np.linalg.norm(reference[-1] - reference[0]) > 0.04  # the check is not of an arm standing still
+
+
+def test_random_actions_do_not_diverge():
+    """64 envs under uniform random full-range actions for a whole episode (50 steps): none diverges (before the
+    weld carried the wrist roll's 1 kg m^2 of armature, 62 of 64 did, ``torchsim.welds``), and the gripper keeps
+    near the orientation the package's mocap law holds it at, ``(1, 0, 1, 0) / sqrt 2``: its median turn from
+    it over all envs and steps is below 0.15 rad (measured 0.078; MuJoCo, on the same actions, 0.013. The largest,
+    1.3 rad against MuJoCo's 0.39, come where the random walk has taken the gripper to the arm's reach)."""
+    torch.manual_seed(0)
+    env = envs.make("fetch_reach", num_envs=64, dtype=F64)
+    env.reset()
+    nominal = torch.tensor([1.0, 0.0, 1.0, 0.0], dtype=F64) / 2 ** 0.5
+    turns = []
+    for _ in range(fetch_reach.EPISODE_STEPS):
+        env.step(TensorDict(action=2 * torch.rand(64, 4, dtype=F64) - 1, batch_size=[64]))
+        quat = env.mj_body_poses(env.state)[1][:, 0]
+        turns.append(2 * torch.acos((quat @ nominal).abs().clamp(max=1.0)))
+    assert not env.state.diverged.any()
+    median_turn = float(torch.stack(turns).median())
+    assert median_turn < 0.15, median_turn
 
 
 def test_mujoco_physics_runs_the_package_steps():

@@ -1,4 +1,4 @@
-"""Weld and connect equality constraints (MuJoCo ``<equality><weld>`` and ``<connect>``) as soft constraint forces on
+"""Weld and connect equality constraints (MuJoCo ``<equality><weld>`` and ``<connect>``) as soft constraint impulses on
 the bodies, and through them on mocap bodies' poses (``System.mocap_pos``/``mocap_quat``).
 
 Each constraint joins a point and an orientation on each of two sides (``torchsim.io_mjcf.equality``): ``p1``,
@@ -9,27 +9,32 @@ Each constraint joins a point and an orientation on each of two sides (``torchsi
   ``torquescale`` ``s``; its rate ``v = s/2 (e_w u + u x e_v)`` with ``u = R2^T (w1 - w2)`` (MuJoCo's rotation
   Jacobian ``0.5 q2^-1 (w1 - w2) q1``). A connect is a weld with ``s = 0``: no rotation rows.
 
-The rows are MuJoCo's soft constraint, solved on the bare bodies each substep: MuJoCo's force
-``f = (A + R)^-1 (aref - a0)`` with ``aref = -B v - K imp r``, ``R = (1 - imp) / imp A0`` (``A0``: MuJoCo's
-approximate inverse inertia of the rows at ``qpos0``, the two bodies' ``body_invweight0``, translation or rotation;
-``imp``: one impedance per constraint, at the norm of its six residuals), with ``A = J M^-1 J^T`` (6x6) and ``a0``
-the rows' acceleration under the substep's other forces and gravity, both of the two bodies as they are, without
-the joints (which the method's joint springs and projections handle). Then the rows' acceleration is MuJoCo's
-``A (A + R)^-1 (aref - a0) + a0`` for those bodies: a free body is held and driven as in MuJoCo, and at rest a
-load leaves MuJoCo's residual ``R f / (K imp)``. The explicit force the other equalities take
-(``torchsim.equality``, ``f = imp aref / A0``) leaves out ``a0`` and puts ``A0`` for ``A``: a weld a metre from
-a body's COM (``<weld body1="b"/>`` holds it at the world's origin) sees an inverse inertia hundreds of times
-``A0`` there, where that force is unstable (its damping alone would remove ``h B A / A0 > 2`` of the rate per
-substep; ~15 for a 1 kg box 1.1 m away).
-On an articulated body the weld sees the bare link, so it pulls the link and the joints bring the rest along
-(``tests/test_mocap_weld.py``: a gripper's path within 3 mm of MuJoCo's).
+The rows are MuJoCo's soft constraint, solved each substep as an impulse on the substep's velocities after every
+other force (:func:`impulses`): MuJoCo's force ``f = (A + R)^-1 (aref - a0)`` with ``aref = -B v - K imp r``,
+``R = (1 - imp) / imp A0`` (``A0``: MuJoCo's approximate inverse inertia of the rows at ``qpos0``, the two bodies'
+``body_invweight0``, translation or rotation; ``imp``: one impedance per constraint, at the norm of its six
+residuals) and ``A = J M^-1 J^T`` (6x6), times ``h``: ``(A + R) p = v + h aref - v_free``, where ``h a0 = v_free -
+v`` is what the substep's other forces, gravity, the joints' springs, armature and damping did to the rows' rate
+``v``. A free body is held and driven as in MuJoCo, and at rest a load leaves MuJoCo's residual ``R f / (K imp)``.
+``A`` is that of the two bodies as they are, without the joints (which the method's joint springs and projections
+handle), each carrying its hinges' armature in the spring method (the inertias its contacts use,
+``joint_space.armature_loaded_inertia``): Fetch's gripper (1.7 kg, 0.001-0.003 kg m^2) hangs on a wrist roll
+whose rotor has 1 kg m^2 of armature, and sized on the bare link the weld's turn about that axis was undone by the
+rotor (the gripper's orientation drifted 18 degrees in 3 steps of random actions, and 62 of 64 envs diverged
+within 50). So the weld pulls the link and the joints bring the rest along (``tests/test_mocap_weld.py``: a
+gripper's path within 3 mm of MuJoCo's; ``tests/test_fetch_reach.py``: Fetch's grip site within 1.4 mm of
+MuJoCo's over six random actions). The explicit force the other equalities take (``torchsim.equality``, ``f = imp
+aref / A0``) leaves out ``a0`` and puts ``A0`` for ``A``: a weld a metre from a body's COM (``<weld body1="b"/>``
+holds it at the world's origin) sees an inverse inertia hundreds of times ``A0`` there, where that force is
+unstable (its damping alone would remove ``h B A / A0 > 2`` of the rate per substep; ~15 for a 1 kg box 1.1 m
+away).
 
-The translation force acts at ``p1`` on side 1 and opposite at ``p2`` on side 2; the rotation rows' generalized
-force ``J^T f`` is the torque ``G^T f`` on side 1 and its opposite on side 2, ``G = s/2 (e_w I - [e_v]x) R2^T``
+The translation impulse acts at ``p1`` on side 1 and opposite at ``p2`` on side 2; the rotation rows' generalized
+impulse ``J^T p`` is the angular impulse ``G^T p`` on side 1 and its opposite on side 2, ``G = s/2 (e_w I - [e_v]x) R2^T``
 the rows' Jacobian on ``w1 - w2``.
 
-A mocap body is a frame at its ``mocap_pos``/``mocap_quat`` with zero velocity, as in MuJoCo; a force on it (or on
-the world) goes nowhere.
+A mocap body is a frame at its ``mocap_pos``/``mocap_quat`` with zero velocity, as in MuJoCo; an impulse on it (or
+on the world) goes nowhere.
 
 Lanes layout (``torchsim.lanes``): ext-indexed body vectors ``(3, N + 1, B)``, per constraint ``(3, W, B)``.
 """
@@ -72,25 +77,18 @@ def residuals(sys: System, bodies: Bodies):
     return torch.cat((r_lin, r_rot)), torch.cat((v_lin, v_rot)), arm, err, q2
 
 
-def wrench(sys: System, bodies: Bodies, inv: rigid.InverseInertia, force: torch.Tensor, torque: torch.Tensor):
-    """Ext-indexed world-frame ``(force [N], torque [N m])`` ``(3, N + 1, B)`` of every weld and connect on the
-    bodies, the torque about each body's COM (module doc), given the substep's inverse inertias ``inv`` and the
-    other forces and torques ``(3, N + 1, B)`` on the bodies (MuJoCo's ``a0``). Only called for a System with welds
-    (``sys.welds``)."""
+def _rows(sys: System, bodies: Bodies, inv: rigid.InverseInertia):
+    """The rows' residuals and rates ``r, v (6, W, B)``, each side's arm ``(3, 2, W, B)``, the rotation rows'
+    Jacobian ``G (3, 3, W, B)`` on ``w1 - w2``, the regularised matrix ``A + R (6, 6, W, B)`` on the bodies of
+    ``inv`` and the impedance ``imp (W, B)`` (module doc)."""
     r, v, arm, err, q2 = residuals(sys, bodies)
     side = sys.weld_body.T.reshape(-1)  # side 1 of every constraint, then side 2; the world for mocap sides
     inv_mass, inv_inertia = (x.unflatten(-2, (2, -1)) for x in rigid.gather(inv, side))  # (2, W, 1|B), (3, 3, 2, W, B)
-    moving = (inv.mass > 0).to(force.dtype)
-    acc = (lanes.param(sys.gravity, 0, 1)[:, None] * moving + inv.mass * force).index_select(-2, side)
-    alpha = spatial.matvec(inv.inertia, torque).index_select(-2, side)
-    acc, alpha = acc.unflatten(-2, (2, -1)), alpha.unflatten(-2, (2, -1))  # (3, side, W, B)
     scale = lanes.param(sys.weld_torquescale, 1)
     # rotation rows' rate G (w1 - w2): G = s/2 (e_w I - [e_v]x) R2^T
     g = 0.5 * scale * spatial.mm(err[0] * spatial.eye3(err, 2) - spatial.skew(err[1:]),
                                  spatial.transpose(spatial.quat_to_mat(q2)))
-    point_acc = acc + spatial.cross(alpha, arm)
-    a0 = torch.cat((point_acc[:, 0] - point_acc[:, 1], spatial.matvec(g, alpha[:, 0] - alpha[:, 1])))
-    # the rows' inverse inertia on the bare bodies, A = sum over sides of J M^-1 J^T, in 3x3 blocks
+    # the rows' inverse inertia A = sum over sides of J M^-1 J^T, in 3x3 blocks
     arm_x = spatial.skew(arm)  # (3, 3, side, W, B)
     lever = spatial.mm(arm_x, inv_inertia)
     a_ll = inv_mass.sum(0) * spatial.eye3(arm, 2) - spatial.mm(lever, arm_x).sum(2)
@@ -102,13 +100,18 @@ def wrench(sys: System, bodies: Bodies, inv: rigid.InverseInertia, force: torch.
     eye = spatial.eye3(arm, 2)
     a = torch.cat((torch.cat((a_ll + regulariser * lin * eye, a_lr), 1),
                    torch.cat((spatial.transpose(a_lr), a_rr + regulariser * rot * eye), 1)))
+    return r, v, arm, g, a, imp
+
+
+def impulses(sys: System, start: Bodies, free: Bodies, inv: rigid.InverseInertia, h: float) -> Bodies:
+    """``free`` (the substep's velocities after every other force, at the poses of ``start``) after every weld's
+    and connect's soft-constraint impulse over the substep ``h``, sized and applied on the inverse inertias ``inv``
+    (the spring method's armature-loaded ones, as its contacts). MuJoCo's ``(A + R) f = aref - a0`` times ``h``:
+    ``(A + R) p = v + h aref - v_free``, ``v`` the rows' rate at the substep's start, ``v_free`` after the other
+    forces (``a0 = (v_free - v) / h``). Only called for a System with welds (``sys.welds``)."""
+    r, v, arm, g, a, imp = _rows(sys, start, inv)
+    v_free = residuals(sys, free)[1]
     k, b = lanes.param(sys.weld_gains, 2).unbind(-2)
-    f = spatial.spd_solve(a, -b * v - k * imp * r - a0)
-    moment = spatial.matvec(spatial.transpose(g), f[3:])  # the rotation rows' J^T f
-    force_1 = f[:3]
-    torque_1 = moment + spatial.cross(arm[:, 0], force_1)
-    torque_2 = -moment - spatial.cross(arm[:, 1], force_1)
-    zero = bodies.x_pos.new_zeros((6,) + bodies.x_pos.shape[1:])
-    total = rigid.scatter_pair(zero, sys.weld_body[:, 0], sys.weld_body[:, 1], torch.cat((force_1, torque_1)),
-                               torch.cat((-force_1, torque_2)))
-    return total[:3], total[3:]
+    p = spatial.spd_solve(a, v + h * (-b * v - k * imp * r) - v_free)
+    return rigid.apply_pair_velocity(free, inv, sys.weld_body[:, 0], sys.weld_body[:, 1], arm[:, 0], arm[:, 1], p[:3],
+                                     spatial.matvec(spatial.transpose(g), p[3:]))

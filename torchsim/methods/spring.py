@@ -248,11 +248,10 @@ def free_velocities(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: Step
         limit_force, limit_torque = tendon_paths.limit_wrench(sys, bodies, inv, force + spring_force,
                                                               torque + spring_torque, axes, dof_values(sys, fr.qd))
         force, torque = force + limit_force, torque + limit_torque
-    if sys.welds:
-        weld_force, weld_torque = welds.wrench(sys, bodies, inv, force + spring_force, torque + spring_torque)
-        force, torque = force + weld_force, torque + weld_torque
     after = integrator.velocity_update(sys, bodies, inv, force + spring_force, torque + spring_torque, h)
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h, q)
+    if sys.welds:  # on the armature-loaded links, as contacts: held by its rotor, a light link's hinge turns little
+        after = welds.impulses(sys, bodies, after, terms.loaded, h)
     return after, inv
 
 

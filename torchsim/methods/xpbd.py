@@ -232,11 +232,10 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     if sys.ten_path_limits:
         limit_force, limit_torque = tendon_paths.limit_wrench(sys, bodies, inv, force, torque, axes, qd)
         force, torque = force + limit_force, torque + limit_torque
-    if sys.welds:
-        weld_force, weld_torque = welds.wrench(sys, bodies, inv, force, torque)
-        force, torque = force + weld_force, torque + weld_torque
     after = integrator.velocity_update(sys, bodies, inv, force, torque, h)
     after, qd_pred = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h)
+    if sys.welds:
+        after = welds.impulses(sys, bodies, after, inv, h)
     q_pred = q + h * qd_pred
     moved = integrator.integrate_positions(after, h)
     inv = rigid.inverse_inertia(sys, moved.x_quat, inv_inertia_body)
