@@ -194,10 +194,3 @@ def test_frictionloss_on_free_or_ball_joint_is_refused(joint):
     with pytest.raises(UnsupportedMJCFError, match="frictionloss on the free or ball joint"):
         torchsim.load_mjcf(xml)
 
-
-def test_tendon_frictionloss_is_refused():
-    xml = """<mujoco><worldbody><body pos="0 0 1"><joint name="a" type="hinge"/>
-      <geom type="sphere" size="0.1"/></body></worldbody>
-      <tendon><fixed name="t" frictionloss="0.1"><joint joint="a" coef="1"/></fixed></tendon></mujoco>"""
-    with pytest.raises(UnsupportedMJCFError, match="tendon .*frictionloss"):
-        torchsim.load_mjcf(xml)

@@ -147,5 +147,3 @@ def test_unsupported_tendon_features_are_named():
     tendon = '<fixed name="geared" armature="0.1"><joint joint="h1" coef="1"/></fixed>'
     with pytest.raises(torchsim.UnsupportedMJCFError, match="geared.*armature"):
         torchsim.load_mjcf(chain(tendon))
-    with pytest.raises(torchsim.UnsupportedMJCFError, match="tendon .*frictionloss"):
-        torchsim.load_mjcf(chain(tendon.replace("armature", "frictionloss")))

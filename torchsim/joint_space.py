@@ -12,7 +12,9 @@ clamped to ``frictionloss * h`` per substep: it stops the dof when that is enoug
 force: an explicit force ``-frictionloss sign(qd)`` flips sign every substep around rest and never holds a dof,
 while the clamped impulse holds it exactly in the substep it acts (MuJoCo's soft friction constraint lets a held
 dof creep instead). It is sized by the dof's effective inverse inertia with armature and implicit damping, the
-inertia every impulse on the dof meets, so a heavy rotor is decelerated at ``frictionloss / (I + J)``.
+inertia every impulse on the dof meets, so a heavy rotor is decelerated at ``frictionloss / (I + J)``. A fixed
+tendon's ``frictionloss`` (over hinges) is the same impulse along the tendon's coordinate ``L = sum_k coef_k q_k``:
+clamped to ``frictionloss * h``, it enters dof ``k`` as ``coef_k`` times itself.
 """
 
 from typing import NamedTuple
@@ -103,8 +105,9 @@ def hinge_rate_solve(sys: System, bodies: Bodies, inv: rigid.InverseInertia, fra
                      limits: LimitRows | None = None):
     """Armature (a rotor per hinge dof turning at ``qd_ref (D, B)``) and implicit damping ``damping_h = h c
     (D, 1 | B)`` on all hinge dofs at once: one dense ``D x D`` solve per env; with ``friction_h = h frictionloss
-    (D, 1 | B)`` [N m s], dry friction on the hinges ``sys.dof_friction_hinges`` too (:func:`_hinge_friction`);
-    with ``limits``, the soft limits (:func:`_limit_system`).
+    (F + G, 1 | B)`` [N m s | N s] of the frictional hinges ``sys.dof_friction_hinges`` then the frictional
+    tendons ``sys.ten_friction``, their dry friction too (:func:`_hinge_friction`); with ``limits``, the soft
+    limits (:func:`_limit_system`).
 
     Dof ``i`` turns its child against its parent about ``u_i``, the row of ``G = A^-1`` for its slot (its axis for
     a single hinge), so ``A_ij = sum_b s_ib s_jb u_i^T I_b^-1 u_j`` (``s = +1`` child, ``-1`` parent) is the dofs'
@@ -172,29 +175,47 @@ def _limit_system(a_flat: torch.Tensor, a: torch.Tensor, inertia: torch.Tensor, 
 def _hinge_friction(sys: System, mat: torch.Tensor, a: torch.Tensor, rhs: torch.Tensor, qd_raw: torch.Tensor,
                      friction_h: torch.Tensor) -> torch.Tensor:
     """The dof impulses ``mu (D, B)`` of :func:`hinge_rate_solve`'s system ``mat mu = rhs`` (``mat (D, D, B)``,
-    ``a (D, D, B)`` its part ``A``) with a dry-friction impulse ``p_k``, ``|p_k| <= friction_h_k``, on each
-    frictional hinge ``k``.
+    ``a (D, D, B)`` its part ``A``) with a dry-friction impulse ``p_r``, ``|p_r| <= friction_h_r``, along each
+    friction row ``r``: a frictional hinge (``sys.dof_friction_hinges``) or a frictional fixed tendon
+    (``sys.ten_friction``). Row ``r`` is a column ``c_r`` of dof coefficients (a unit column for a hinge, the
+    tendon's ``coef`` for a tendon, whose rate is ``c_r^T qd``), and its impulse ``p_r`` enters the dofs as
+    ``c_r p_r``, as a tendon force does.
 
-    An impulse ``p`` on the dofs changes their rates by ``W p``, ``W = A - A mat^-1 A = (A^-1 + diag(J + h c))^-1``
-    (the rotor and damper take their share), and the rotor and damper impulses by ``-mat^-1 A p``; one solve with
-    the ``F`` frictional columns of ``A`` as extra right-hand sides gives both. The ``p_k`` then take one
-    Gauss-Seidel sweep over the ``F`` frictional hinges, each clamped: exact for one frictional hinge, or for
-    several that share no body; otherwise what one sweep leaves is taken up in the next substep.
+    Impulses ``p`` along the rows ``C`` change the dofs' rates by ``W C p``, ``W = A - A mat^-1 A = (A^-1 +
+    diag(J + h c))^-1`` (the rotor and damper take their share), and the rotor and damper impulses by ``-mat^-1 A
+    C p``; one solve with the columns of ``A C`` as extra right-hand sides gives both. The ``p_r`` then take one
+    Gauss-Seidel sweep over the rows, each clamped: exact for one row, or for several that share no body;
+    otherwise what one sweep leaves is taken up in the next substep.
     """
-    dofs = sys.dof_friction_hinges
-    a_f = a.index_select(1, dofs)  # (D, F, B)
-    x = spatial.spd_solve(mat, torch.cat((rhs.unsqueeze(1), a_f), 1))
-    mu, x_f = x[:, 0], x[:, 1:]
-    qd = (qd_raw + spatial.matvec(a, mu)).index_select(0, dofs)
-    w = a_f.index_select(0, dofs) - (a_f.unsqueeze(2) * x_f.unsqueeze(1)).sum(0)  # (F, F, B), A symmetric
-    limit = friction_h.index_select(0, dofs)
+    a_c = _friction_rows(sys, a).transpose(0, 1)  # (D, R, B): A C, A symmetric
+    x = spatial.spd_solve(mat, torch.cat((rhs.unsqueeze(1), a_c), 1))
+    mu, x_c = x[:, 0], x[:, 1:]
+    qd = _friction_rows(sys, qd_raw + spatial.matvec(a, mu))  # (R, B)
+    w = _friction_rows(sys, a_c) - (a_c.unsqueeze(2) * x_c.unsqueeze(1)).sum(0)  # (R, R, B): C^T W C
     p = []  # (1, B) slices, not (B,) rows: row graphs (torchsim.execution.kernel.rows) cannot read a (1,)-shaped constant
-    for k in range(dofs.shape[0]):
+    for k in range(qd.shape[0]):
         row = slice(k, k + 1)
         stop = -(qd[row] + sum(w[row, j] * p[j] for j in range(k))) / w[row, k]
-        p.append(torch.minimum(torch.maximum(stop, -limit[row]), limit[row]))
+        p.append(torch.minimum(torch.maximum(stop, -friction_h[row]), friction_h[row]))
     p = torch.cat(p)
-    return mu.index_add(0, dofs, p) - (x_f * p).sum(1)
+    hinges = sys.dof_friction_hinges.shape[0]
+    mu = mu.index_add(0, sys.dof_friction_hinges, p[:hinges]) - (x_c * p).sum(1)
+    if sys.ten_friction.shape[0]:
+        terms = lanes.param(sys.ten_friction_coef, 1) * p[hinges:].index_select(0, sys.ten_friction_row)
+        mu = mu.index_add(0, sys.ten_friction_dof, terms)
+    return mu
+
+
+def _friction_rows(sys: System, v: torch.Tensor) -> torch.Tensor:
+    """``C^T v (R, ...)`` for ``v (D, ...)`` along its first axis: the frictional hinges' entries of ``v``, then
+    each frictional tendon's combination ``sum_k coef_k v[dof_k]`` (:func:`_hinge_friction`'s rows ``C``)."""
+    hinges = v.index_select(0, sys.dof_friction_hinges)
+    if not sys.ten_friction.shape[0]:
+        return hinges
+    coef = sys.ten_friction_coef.view(-1, *(1,) * (v.ndim - 1))
+    terms = coef * v.index_select(0, sys.ten_friction_dof)
+    tendons = v.new_zeros((sys.ten_friction.shape[0], *v.shape[1:])).index_add(0, sys.ten_friction_row, terms)
+    return torch.cat((hinges, tendons))
 
 
 def slide_inertia_and_damping(sys: System, before: Bodies, after: Bodies, axes: torch.Tensor, qd: torch.Tensor,
@@ -237,7 +258,12 @@ def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: Join
     its projection instead, where the joints hold: an impulse here turns a link about its COM, and the projection
     would keep only ``I_com / I_pivot`` of it.)"""
     qd = dof_values(sys, frames.qd)
-    friction_h = h * lanes.param(sys.dof_frictionloss, 1) if sys.dof_friction_hinges.shape[0] else None
+    friction_h = None
+    if sys.dof_friction_hinges.shape[0] or sys.ten_friction.shape[0]:
+        rows = (lanes.param(sys.dof_frictionloss, 1).index_select(0, sys.dof_friction_hinges),
+                lanes.param(sys.ten_frictionloss, 1).index_select(0, sys.ten_friction))
+        batch = max(r.shape[-1] for r in rows)  # dof_frictionloss may be per env
+        friction_h = h * torch.cat([r.expand(-1, batch) for r in rows])
     limits = None
     if sys.dof_limits and q is not None:
         limits = limit_rows(sys, q, qd, h)

@@ -181,6 +181,10 @@ class System:
         ten_springs, ten_limits, ten_path_limits, act_on_tendons: whether any tendon has stiffness or damping, any
         fixed tendon a limit, any spatial tendon a limit, any actuator tendon transmission (static structure: a
         model without them skips their work).
+        ten_frictionloss: (T,) [N | N m] largest dry-friction force along each tendon (MuJoCo ``frictionloss``; fixed
+        tendons over hinges only).  ten_friction: (G,) the tendons with nonzero frictionloss (static structure: a
+        model without skips their work; ``joint_space``).  ten_friction_row, ten_friction_dof: (K',) each term of
+        those tendons' lengths, its place in ``ten_friction`` and its dof.  ten_friction_coef: (K',).
     Equality constraints (``E`` active MuJoCo ``<equality><tendon>``/``<joint>``, ``torchsim.equality``; each has two
     sides, rows ``e`` and ``E + e``, linear in the dof coordinates over ``K`` terms):
         eq_wrap_side, eq_wrap_dof: (K,) each term's side row and dof.  eq_wrap_coef: (K,).
@@ -397,6 +401,11 @@ class System:
     ten_limits: bool
     ten_path_limits: bool
     act_on_tendons: bool
+    ten_frictionloss: torch.Tensor
+    ten_friction: torch.Tensor
+    ten_friction_row: torch.Tensor
+    ten_friction_dof: torch.Tensor
+    ten_friction_coef: torch.Tensor
     # equality constraints
     eq_wrap_side: torch.Tensor
     eq_wrap_dof: torch.Tensor

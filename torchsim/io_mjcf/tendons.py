@@ -1,11 +1,11 @@
 """MuJoCo tendons -> torchsim tendons. Fixed tendons: ``L = sum_k coef_k q_k`` over hinge and slide dofs. Spatial
 tendons: paths through sites, in branches split by ``<pulley divisor>`` (``torchsim.tendon_paths``). Both with
 passive stiffness (dead band ``lengthspring``) and damping, soft limits (a spatial tendon's with MuJoCo's ``a0``
-term), and actuators with tendon transmission.
+term), actuators with tendon transmission, and dry friction (``frictionloss``) on fixed tendons over hinges.
 
-Wrapping around geoms, sites on mocap bodies, equality constraints on spatial tendons, armature, frictionloss,
-nonlinear (polynomial) stiffness or damping, plasticity and actuator force limits on a tendon are refused naming
-the tendon. ``System`` documents the fields.
+Wrapping around geoms, sites on mocap bodies, equality constraints on spatial tendons, armature, frictionloss on
+spatial tendons or on fixed tendons over slides, nonlinear (polynomial) stiffness or damping, plasticity and
+actuator force limits on a tendon are refused naming the tendon. ``System`` documents the fields.
 """
 
 import mujoco
@@ -17,6 +17,7 @@ from torchsim.io_mjcf.subset import UnsupportedMJCFError, name
 
 _JOINT, _SITE, _PULLEY = (int(w) for w in (mujoco.mjtWrap.mjWRAP_JOINT, mujoco.mjtWrap.mjWRAP_SITE,
                                            mujoco.mjtWrap.mjWRAP_PULLEY))
+_HINGE = int(mujoco.mjtJoint.mjJNT_HINGE)
 
 
 def tendon_fields(m: mujoco.MjModel, jnt_dof: dict, fused: FusedBodies) -> dict:
@@ -30,6 +31,8 @@ def tendon_fields(m: mujoco.MjModel, jnt_dof: dict, fused: FusedBodies) -> dict:
             wraps += [(t, jnt_dof[m.wrap_objid[w]], m.wrap_prm[w]) for w in adr]
         else:
             segments += _segments(m, t, adr)
+    frictional = [t for t in range(m.ntendon) if m.tendon_frictionloss[t] != 0]
+    friction_terms = [(slot, dof, coef) for slot, t in enumerate(frictional) for row, dof, coef in wraps if row == t]
     ends = [[_site_on_body(m, fused, seg[1][k]) for seg in segments] for k in range(2)]
     spatial = np.array([m.wrap_type[m.tendon_adr[t]] != _JOINT for t in range(m.ntendon)], dtype=bool)
     is_tendon = m.actuator_trntype == int(mujoco.mjtTrn.mjTRN_TENDON)
@@ -52,6 +55,9 @@ def tendon_fields(m: mujoco.MjModel, jnt_dof: dict, fused: FusedBodies) -> dict:
         ten_springs=bool(np.any(m.tendon_stiffness != 0) or np.any(m.tendon_damping != 0)),
         ten_limits=bool((limited & ~spatial).any()), ten_path_limits=bool((limited & spatial).any()),
         act_on_tendons=bool(is_tendon.any()),
+        ten_frictionloss=torch.as_tensor(m.tendon_frictionloss.copy()),
+        ten_friction=torch.as_tensor(frictional, dtype=torch.long),
+        **dict(zip(("ten_friction_row", "ten_friction_dof", "ten_friction_coef"), wrap_columns(friction_terms))),
         act_tendon=torch.as_tensor(np.where(is_tendon, m.actuator_trnid[:, 0], -1), dtype=torch.long),
     )
 
@@ -104,15 +110,21 @@ def _check_tendon(m: mujoco.MjModel, t: int, jnt_dof: dict) -> None:
     if m.wrap_type[wraps[0]] == _JOINT:
         if any(m.wrap_objid[w] not in jnt_dof for w in wraps):
             raise UnsupportedMJCFError(f"tendon {tendon!r}: a fixed tendon may only couple hinge and slide joints")
+        # the dry friction joins the hinges' dof solve (joint_space); slides are solved one dof at a time
+        if m.tendon_frictionloss[t] != 0 and any(m.jnt_type[m.wrap_objid[w]] != _HINGE for w in wraps):
+            raise UnsupportedMJCFError(f"tendon {tendon!r}: frictionloss on a fixed tendon over slide joints is not "
+                                       "supported (only over hinges)")
     else:
         _check_spatial(m, tendon, wraps)
+        if m.tendon_frictionloss[t] != 0:
+            raise UnsupportedMJCFError(f"tendon {tendon!r}: frictionloss on a spatial tendon is not supported (only "
+                                       "on fixed tendons)")
         if any(m.eq_type[e] == int(mujoco.mjtEq.mjEQ_TENDON) and t in (m.eq_obj1id[e], m.eq_obj2id[e])
                for e in range(m.neq)):
             raise UnsupportedMJCFError(f"tendon {tendon!r}: equality constraints on spatial tendons are not "
                                        "supported (only on fixed tendons)")
     refused = {
         "armature": m.tendon_armature[t] != 0,
-        "frictionloss": m.tendon_frictionloss[t] != 0,  # joint frictionloss on hinges and slides is supported
         "polynomial stiffness/damping": np.any(m.tendon_stiffnesspoly[t] != 0) or np.any(m.tendon_dampingpoly[t] != 0),
         "plasticity (springyield)": m.tendon_springyield[t] != 0 or m.tendon_plasticadr[t] != -1,
         "actuatorfrcrange": m.tendon_actfrclimited[t],
