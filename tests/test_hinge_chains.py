@@ -184,11 +184,10 @@ def test_degenerate_layouts_are_refused(joints, message):
         torchsim.load_mjcf(_scene(joints), dtype=F64)
 
 
-# Three orthogonal hinges at one anchor (the humanoid's hips) keep their own form, whose hinge slots apply a
-# generalized force as a couple along the hinge's axis, not its dual row: a motor on the last hinge then also pushes
-# on the first (by sin of the middle angle). Routed through the general form (jnt_general) the same joint is 4.3e-4
-# rad off MuJoCo over 0.3 s (MuJoCo's own dt vs dt/4: 4.3e-4); in its own form 0.029 rad. Kept so that the shipped
-# humanoid's steps stay as they are until that change is made on purpose.
+# Three orthogonal hinges at one anchor (the humanoid's hips) keep their own form (their angles by asin), with the
+# general joints' dual rows for generalized forces: along the hinge's axis instead, a motor on the last hinge also
+# pushed on the first (by sin of the middle angle) and the joint went 0.029 rad off MuJoCo in 0.3 s; with the dual
+# rows 1.3e-5 rad (xpbd 1.6e-5; MuJoCo's own dt vs dt/4: 4.3e-4).
 MOTORED_BALL = """
 <mujoco><option timestep="0.002" gravity="0 0 0"/><worldbody>
   <body name="link" pos="0 0 1">
@@ -197,7 +196,6 @@ MOTORED_BALL = """
   </body></worldbody><actuator><motor joint="y"/></actuator></mujoco>"""
 
 
-@pytest.mark.xfail(strict=True, reason="orthogonal 3-hinge joints apply generalized forces along their axes")
 def test_motor_on_orthogonal_three_hinges_follows_mujoco():
     """A motor on the last of 3 orthogonal hinges, middle hinge at 0.6 rad: within 2x MuJoCo's dt vs dt/4."""
     q0, steps = np.array([0.2, 0.6, 0.1]), 150

@@ -240,6 +240,9 @@ def _hinge_coordinates(sys, sel, child: _Ends, quat_rel, ang_rel_w, mode, axes, 
         if two or three:
             hinge_axes = torch.stack((a1_w, col2, col3), -2)
             hinge_dual = spatial.inv3(hinge_axes.movedim(-2, 1))  # the inverse of the matrix with the axes as columns
+            if three:  # a3 leaves a1's normal plane as q2 turns: generalized forces act along the dual rows (MuJoCo's
+                # J^T tau), as the general joints' do (_General); a motor on a3 along a3 also pushed on a1
+                hinge_axes = torch.where(mode[:, 3, None] > 0, hinge_dual.permute(1, 2, 0, 3), hinge_axes)
         else:  # the zero frame's axes are orthonormal (``System.jnt_axes``): that matrix's inverse is its transpose
             hinge_axes = axes0
             hinge_dual = hinge_axes.movedim(-2, 0)
