@@ -7,6 +7,10 @@ Pairs with an ellipsoid or a cylinder are computed in ``torchsim.collision_round
 hull) in ``torchsim.collision_mesh``, pairs with a height field in ``torchsim.collision_hfield``; each module gives
 their accuracy.
 
+A geom is posed by the frame it moves with (``System.geom_frame``): its body's, or a mocap body's per-env
+``mocap_pos``/``mocap_quat`` (read only where a pair has a mocap geom, ``System.contact_mocap``); a mocap geom's side
+is the world's, at rest and taking no impulse, as MuJoCo's mocap bodies are.
+
 Tensors are in the lanes layout (``torchsim.lanes``). A group's ``P`` pairs with ``K`` points each are evaluated as
 ``(*C, P, K, B)``, the point axis at ``-2`` as every entity axis inserted before the batch, and flattened to the
 group's ``P K`` contacts at the end.
@@ -20,7 +24,7 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import collision_hfield, collision_mesh, collision_round, lanes, spatial
+from torchsim import collision_hfield, collision_mesh, collision_round, lanes, spatial, welds
 from torchsim.kinematics import Bodies
 from torchsim.system import System
 
@@ -227,16 +231,21 @@ def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Co
     ``rot (3, 3, N + 1, B)``: the bodies' rotation matrices where the caller has them (default: built from
     ``bodies.x_quat``)."""
     rot = spatial.quat_to_mat(bodies.x_quat) if rot is None else rot
+    x_pos = bodies.x_pos
+    if sys.contact_mocap:  # the frames the geoms move with (System.geom_frame): the ext bodies', then the mocap bodies'
+        mocap_pos, mocap_quat = welds.mocap_poses(sys, x_pos.shape[-1])
+        x_pos = torch.cat((x_pos, mocap_pos), -2)
+        rot = torch.cat((rot, spatial.quat_to_mat(mocap_quat)), -2)
     geom_pos, geom_size = lanes.param(sys.geom_pos, 1, 1), lanes.param(sys.geom_size, 1, 1)
     geom_rot = spatial.quat_to_mat(lanes.param(sys.geom_quat, 1, 1))
     pos, normal, depth, body_a, body_b, friction = [], [], [], [], [], []
     for group in sys.contact_groups:
         on_world = _on_world(group)
         geom = group.geom_a if on_world else torch.cat((group.geom_a, group.geom_b))  # moving sides' poses at once
-        body = sys.geom_body[geom]
+        frame = sys.geom_frame[geom]
         full = any(shape in group.kind for shape in ("box", "ellipsoid", "cylinder", "mesh", "hfield"))
         frames = geom_rot if full else geom_rot[:, 2:]  # capsules and planes need only their z axes
-        x, r = bodies.x_pos.index_select(-2, body), rot.index_select(-2, body)
+        x, r = x_pos.index_select(-2, frame), rot.index_select(-2, frame)
         world_pos = x + spatial.matvec(r, geom_pos.index_select(-2, geom))
         world_rot = spatial.mm(r, frames.index_select(-2, geom))
         if on_world:  # the plane's pose is its geom frame: (3, P, 1), (3, 3|1, P, 1)

@@ -203,15 +203,18 @@ class System:
         each side's ``body_invweight0`` (translation [1/kg], rotation [1/(kg m^2)]; 0 for the world and mocap
         bodies), whose sums are MuJoCo's approximate inverse inertia of the rows at ``qpos0``.
         welds: whether there are any (static structure).
-    Mocap bodies (``M``, kinematic, MuJoCo's ``mocap_pos``/``mocap_quat``; only weld and connect constraints read them,
-    ``torchsim.io_mjcf.bodies``):
+    Mocap bodies (``M``, kinematic, MuJoCo's ``mocap_pos``/``mocap_quat``; weld and connect constraints and the contacts
+    of their geoms read them, ``torchsim.io_mjcf.bodies``):
         mocap_pos: (M, 3) [m], mocap_quat: (M, 4) each mocap body's frame in the world, batchable: the model pose at
         load; per-env targets are ``sys.replace(mocap_pos=(B, M, 3), mocap_quat=(B, M, 4))``, inputs of the step
         like every per-env parameter (a step kernel takes them as inputs: setting them every step rebuilds nothing;
         a shared ``(M, 3)`` value is built into the kernel, so set targets per env even where they agree).
     Geometry and contacts:
-        geom_body: (G,) ext body index.  geom_pos, geom_quat: (G, 3), (G, 4) from the body COM in the body frame
-        (world frame for static geoms).  geom_size: (G, 3) MuJoCo sizes.  contact_groups: one per shape pair.
+        geom_body: (G,) ext body index (the world's for a mocap body's geom: it takes no impulse).  geom_frame: (G,)
+        the frame the geom moves with, indexing the ext bodies followed by the mocap bodies (``N + 1 + k``): its
+        body's, or mocap body ``k``'s.  geom_pos, geom_quat: (G, 3), (G, 4) from that frame's origin (a body's COM)
+        in that frame (world frame for static geoms).  contact_mocap: whether any contact pair has a mocap body's
+        geom (static structure: a model without reads no mocap pose in ``torchsim.collision``).  geom_size: (G, 3) MuJoCo sizes.  contact_groups: one per shape pair.
         geom_hull_vert: (G, V, 3) [m] each colliding mesh geom's convex hull vertices, geom frame, padded to the
         model's largest hull (``V`` vertices, 0 without colliding meshes; ``torchsim.io_mjcf.meshes``);
         geom_hull_real: (G, V) false at padding; geom_hull_edge: (G, V, D, 3) [m] the edges from each hull vertex
@@ -430,6 +433,7 @@ class System:
     mocap_quat: torch.Tensor
     # geometry
     geom_body: torch.Tensor
+    geom_frame: torch.Tensor
     geom_pos: torch.Tensor
     geom_quat: torch.Tensor
     geom_size: torch.Tensor
@@ -444,6 +448,7 @@ class System:
     hfield_windows: tuple
     contact_groups: tuple
     contact_soft: bool
+    contact_mocap: bool
     contact_gains: torch.Tensor
     contact_solimp: torch.Tensor
     contact_invweight: torch.Tensor

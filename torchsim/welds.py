@@ -49,12 +49,17 @@ from torchsim.system import System
 def frames(sys: System, bodies: Bodies):
     """The frames the constraints' sides move with: positions, orientations, linear and angular velocities
     ``(3|4, N + 1 + M, B)``, the ext bodies' (COM, body frame) followed by the mocap bodies' (at rest)."""
-    batch = bodies.x_pos.shape[-1]
-    mocap_pos = lanes.param(sys.mocap_pos, 1, 1).expand(-1, -1, batch)
-    mocap_quat = spatial.normalize(lanes.param(sys.mocap_quat, 1, 1)).expand(-1, -1, batch)  # as MuJoCo's kinematics
+    mocap_pos, mocap_quat = mocap_poses(sys, bodies.x_pos.shape[-1])
     rest = torch.zeros_like(mocap_pos)
     return (torch.cat((bodies.x_pos, mocap_pos), -2), torch.cat((bodies.x_quat, mocap_quat), -2),
             torch.cat((bodies.xd_vel, rest), -2), torch.cat((bodies.xd_ang, rest), -2))
+
+
+def mocap_poses(sys: System, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The mocap bodies' positions ``(3, M, B)`` and unit orientations ``(4, M, B)`` for a batch of ``batch`` envs."""
+    mocap_pos = lanes.param(sys.mocap_pos, 1, 1).expand(-1, -1, batch)
+    mocap_quat = spatial.normalize(lanes.param(sys.mocap_quat, 1, 1)).expand(-1, -1, batch)  # as MuJoCo's kinematics
+    return mocap_pos, mocap_quat
 
 
 def residuals(sys: System, bodies: Bodies):

@@ -7,8 +7,8 @@ is harmless):
   to 3 ``hinge``. Without slides the hinges may have any anchors (``pos``) and any axes, not parallel (for 3 not in
   one plane) (``torchsim.hinge_anchors``); after slides they share one anchor on orthogonal axes.
   ``range``, ``damping``, ``armature``, ``stiffness``/``springref`` and ``ref`` on hinges and slides.
-  ``frictionloss`` on hinges and slides (not on free or ball joints, nor on tendons). ``damping`` and
-  ``armature`` on free joints (armature only where the body's origin is its centre of mass), ``damping``,
+  ``frictionloss`` on hinges and slides (not on free or ball joints) and on fixed tendons over hinges. ``damping``
+  and ``armature`` on free joints (armature only where the body's origin is its centre of mass), ``damping``,
   ``armature`` and ``stiffness`` on ball joints (``joint_space``); not ``stiffness`` on a free joint.
 - hinge angles run on through full turns in ``q`` (MuJoCo's ``qpos``), and limits, springs, tendons, equalities
   and servos see them so (also ranges wider than a turn) while a hinge turns less than half a turn per step
@@ -26,8 +26,9 @@ is harmless):
   ``torquescale``, as soft constraint forces on the bodies (``torchsim.welds``); inactive ones do nothing; flex
   constraints are refused.
 - mocap bodies: kinematic, posed per env by ``System.mocap_pos``/``mocap_quat`` (MuJoCo's ``mocap_pos``/
-  ``mocap_quat``; ``sys.replace(mocap_pos=(B, M, 3))``), which the welds and connects read. Their geoms stay at the
-  model pose and may not collide; bodies attached to them by joints are refused (``torchsim.io_mjcf.bodies``).
+  ``mocap_quat``; ``sys.replace(mocap_pos=(B, M, 3))``), which the welds and connects read. Their geoms move with
+  them and collide with moving bodies as static geoms do (at rest, as in MuJoCo); bodies attached to them by joints
+  are refused (``torchsim.io_mjcf.bodies``).
 - ``<skin>`` is ignored with a warning (it has no physics).
 - contact geoms: ``plane`` (static), ``sphere``, ``capsule``, ``box``, ``ellipsoid``, ``cylinder`` (against planes,
   spheres and capsules, ellipsoid-ellipsoid and cylinder-cylinder, see ``torchsim.collision_round``;

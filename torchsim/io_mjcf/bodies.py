@@ -1,9 +1,10 @@
 """MuJoCo bodies -> torchsim bodies: each body without joints is fused into its parent (its weld root).
 
 Mocap bodies (MuJoCo ``body_mocapid >= 0``) are kinematic: their pose is the System's ``mocap_pos``/``mocap_quat``,
-set per env, which only the weld and connect constraints read (``torchsim.welds``). They are not moving bodies:
-their geoms and jointless children belong to the static world at the model pose (where a renderer draws them), so a
-mocap geom that can collide, or a body attached to a mocap body by joints, is refused by name.
+set per env, which the weld and connect constraints (``torchsim.welds``) and the contacts of their geoms
+(``torchsim.collision``) read. They are not moving bodies: their masses and jointless children belong to the static
+world, which takes no impulse, and their geoms move with the mocap frame (:meth:`FusedBodies.moving_frame`), at rest
+as in MuJoCo. A body attached to a mocap body by joints is refused by name.
 
 Frames here are numpy float64, MuJoCo's ``(pos, quat)`` convention.
 """
@@ -38,6 +39,21 @@ class FusedBodies(NamedTuple):
     def body_of(self, m: mujoco.MjModel, mj_body: int) -> int:
         """The torchsim ext body index that MuJoCo body ``mj_body`` is fused into."""
         return self.index[m.body_weldid[mj_body]]
+
+    def moving_frame(self, m: mujoco.MjModel, mj_body: int) -> tuple[int, np.ndarray, np.ndarray]:
+        """The frame MuJoCo body ``mj_body`` moves with, as an index into the ext bodies followed by the mocap
+        bodies (``N + 1 + k`` for mocap body ``k``, as ``torchsim.welds.frames`` lists them), and the body's
+        ``(pos (3,), quat (4,))`` in it: from its fused body's COM, the world's origin, or the mocap body's origin
+        in the mocap body's own frame."""
+        root = m.body_weldid[mj_body]
+        pos, quat = self.frame[mj_body]
+        if m.body_mocapid[root] < 0:
+            return self.body_of(m, mj_body), pos - self.com_of(m, mj_body), quat
+        root_pos, root_quat = self.frame[root]  # the mocap body's model pose in the world
+        inverse = np.zeros(4)
+        mujoco.mju_negQuat(inverse, root_quat)
+        pos, quat = compose(np.zeros(3), inverse, pos - root_pos, quat)
+        return len(self.roots) + 1 + int(m.body_mocapid[root]), pos, quat
 
     def com_of(self, m: mujoco.MjModel, mj_body: int) -> np.ndarray:
         """The COM of the fused body holding ``mj_body`` in its root's frame (the world's origin for the world)."""
@@ -101,17 +117,7 @@ def fuse_bodies(m: mujoco.MjModel) -> tuple[FusedBodies, dict]:
 
 
 def _check_mocap(m: mujoco.MjModel, roots: list) -> None:
-    """Refuse what a kinematic mocap body would carry wrongly: a geom that can collide (it would stay at the model
-    pose; checked on ``contype``/``conaffinity`` and ``<pair>``, so a geom whose bits match nothing is refused too),
-    and a body attached to a mocap body by joints (its joint would hold it to the model pose)."""
-    paired = set(m.pair_geom1) | set(m.pair_geom2)
-    for g in range(m.ngeom):
-        body = m.body_weldid[m.geom_bodyid[g]]
-        if m.body_mocapid[body] >= 0 and (m.geom_contype[g] or m.geom_conaffinity[g] or g in paired):
-            raise UnsupportedMJCFError(
-                f"geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, g)!r} of mocap body "
-                f"{name(m, mujoco.mjtObj.mjOBJ_BODY, body)!r} can collide: torchsim's mocap bodies carry no contacts "
-                "(set its contype and conaffinity to 0)")
+    """Refuse a body attached to a mocap body by joints (its joint would hold it to the model pose)."""
     for b in roots:
         mocap = m.body_weldid[m.body_parentid[b]]
         if m.body_mocapid[mocap] >= 0:

@@ -31,15 +31,20 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies, contact_soft: bool) -> di
     """Geom frames relative to their fused body's COM, and the candidate contact pairs grouped by shape pair;
     ``contact_soft``: whether the contacts are soft (``load_mjcf(contact_model=...)``), which alone read the
     contact incidence tables."""
-    gpos, gquat = [], []
+    gframe, gpos, gquat = [], [], []
     for g in range(m.ngeom):
-        b = m.geom_bodyid[g]
-        p, q = compose(*fused.frame[b], m.geom_pos[g], m.geom_quat[g])
-        gpos.append(p - fused.com_of(m, b))
+        frame, *pose = fused.moving_frame(m, m.geom_bodyid[g])
+        p, q = compose(*pose, m.geom_pos[g], m.geom_quat[g])
+        gframe.append(frame)
+        gpos.append(p)
         gquat.append(q)
     pairs = {}
     if not m.opt.disableflags & int(mujoco.mjtDisableBit.mjDSBL_CONTACT):
         pairs = candidate_pairs(m)
+    geom_body = np.array([fused.body_of(m, m.geom_bodyid[g]) for g in range(m.ngeom)], dtype=np.int64)
+    world = fused.index[0]
+    # neither side moves (the world and mocap bodies, at rest): no impulse, and MuJoCo collides no such pair either
+    pairs = {pair: row for pair, row in pairs.items() if (geom_body[list(pair)] != world).any()}
     groups = {}
     for (g1, g2), (friction, margin, *_) in pairs.items():
         names = [SHAPE_NAME.get(int(m.geom_type[g])) for g in (g1, g2)]
@@ -50,8 +55,11 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies, contact_soft: bool) -> di
                 f"{mujoco.mjtGeom(m.geom_type[bad]).name} can collide; contact geoms must be plane, sphere, "
                 "capsule, box, ellipsoid, cylinder, mesh or hfield (set contype/conaffinity to 0 for visual-only "
                 "geoms)")
-        if names.count("plane") == 1 and m.body_weldid[m.geom_bodyid[g1 if names[0] == "plane" else g2]] != 0:
-            raise UnsupportedMJCFError("planes must belong to the world body")
+        plane = g1 if names[0] == "plane" else g2
+        if names.count("plane") == 1 and m.body_weldid[m.geom_bodyid[plane]] != 0:
+            raise UnsupportedMJCFError(f"plane geom {name(m, mujoco.mjtObj.mjOBJ_GEOM, plane)!r} can collide and is "
+                                       "not on the world body: planes must belong to the world body (not to a "
+                                       "moving or mocap body)")
         (ga, na), (gb, nb) = sorted(((g1, names[0]), (g2, names[1])), key=lambda x: SHAPE_RANK[x[1]])
         if f"{na}_{nb}" not in POINTS_PER_PAIR | MESH_POINTS_PER_PAIR:
             geom_a, geom_b = (name(m, mujoco.mjtObj.mjOBJ_GEOM, g) for g in (ga, gb))
@@ -76,11 +84,11 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies, contact_soft: bool) -> di
                        dtype=np.int64)
     solref, solimp, invweight = (np.repeat(np.array([p[4 + i] for p in ordered]).reshape(-1, *shape), repeats, 0)
                                  for i, shape in enumerate(((2,), (5,), ())))
-    geom_body = np.array([fused.body_of(m, m.geom_bodyid[g]) for g in range(m.ngeom)], dtype=np.int64)
     pair_geoms = np.array([p[:2] for p in ordered], dtype=np.int64).reshape(-1, 2)
     bodies = np.repeat(geom_body[pair_geoms], repeats, 0)  # (C, 2) each point's two ext bodies
     return dict(
-        geom_body=torch.as_tensor(geom_body, dtype=torch.long),
+        geom_body=torch.as_tensor(geom_body, dtype=torch.long), geom_frame=torch.as_tensor(gframe, dtype=torch.long),
+        contact_mocap=bool(np.any(np.array(gframe, dtype=np.int64)[pair_geoms] > world)),
         geom_pos=torch.as_tensor(np.array(gpos).reshape(-1, 3)), geom_quat=torch.as_tensor(np.array(gquat).reshape(-1, 4)),
         geom_size=torch.as_tensor(m.geom_size.copy()), **hulls, **hfield_fields(m, groups),
         contact_groups=contact_groups,
