@@ -198,3 +198,24 @@ def test_dm_control_testing_cartpole_loads():
         pytest.skip("dm_control's testing cartpole.xml is not cached (studies/check_robot_models.py)")
     sys = torchsim.load_mjcf(paths[0])
     assert sys.mocap_pos.shape == (2, 3) and not sys.contact_mocap
+
+
+def test_per_env_mocap_platforms_in_the_step_kernel():
+    """Mocap poses read by the contacts are inputs of the step kernel too: three envs' platforms at three heights
+    carry their cubes as the reference step does (to 1e-9 m over 20 steps, float64), and moving the platforms reuses
+    the kernel."""
+    sys = torchsim.load_mjcf(platform_and_cube(0.01), dtype=F64)
+    platforms = torch.tensor([[[0.0, 0.0, 0.5]], [[0.0, 0.0, 0.52]], [[0.05, 0.0, 0.48]]], dtype=F64)
+    per_env = sys.replace(mocap_pos=platforms, mocap_quat=sys.mocap_quat.expand(3, -1, -1))
+    stepper = torchsim.Stepper(per_env, "kernel", threads=1)
+    start = torchsim.init(sys, sys.q0.expand(3, -1), torch.zeros(3, sys.nv, dtype=F64))
+    ctrl = torch.zeros(3, 0, dtype=F64)
+    expected, got = start, start
+    for _ in range(20):
+        expected, got = torchsim.step(per_env, expected, ctrl), stepper(got, ctrl)
+    assert stepper.strategy == "kernel"
+    assert (expected.q[:, 2] - start.q[:, 2]).abs().max() > 1e-2  # the raised and lowered platforms moved them
+    assert (got.q - expected.q).abs().max() < 1e-9
+    moved = stepper.for_system(per_env.replace(mocap_pos=platforms.flip(0)))
+    moved(got, ctrl)
+    assert moved.num_kernels == 1 and moved._kernel() is stepper._kernel()
