@@ -58,8 +58,7 @@ def weld_fields(m: mujoco.MjModel, fused: FusedBodies) -> dict:
     quaternion (``[6:10]``) and ``torquescale`` (``[10]``); with sites, the sites' frames replace them (``relpose``
     unused)."""
     kept = [e for e in _active(m) if m.eq_type[e] in (_WELD, _CONNECT) and not _idle(m, e)]
-    n, world = len(kept), len(fused.roots)
-    mocap_frame = {b: world + 1 + k for k, b in enumerate(fused.mocap)}
+    n = len(kept)
     frame, body, anchor, quat = np.zeros((n, 2), int), np.zeros((n, 2), int), np.zeros((n, 2, 3)), np.zeros((n, 2, 4))
     torquescale, invweight = np.zeros(n), np.zeros((n, 2, 2))
     for i, e in enumerate(kept):
@@ -72,16 +71,10 @@ def weld_fields(m: mujoco.MjModel, fused: FusedBodies) -> dict:
             else:  # a weld's first anchor is body 1's point, [3:6]
                 local = (data[3 * (1 - side):3 * (2 - side)] if weld else data[3 * side:3 * side + 3],
                          data[6:10] if weld and side == 0 else np.array([1.0, 0, 0, 0]))
-            root = m.body_weldid[mj_body]
-            pos, q = compose(*fused.frame[mj_body], *local)  # in the root's frame (the world's for a mocap body)
-            if root in mocap_frame:  # to the mocap body's own frame, which moves with mocap_pos and mocap_quat
-                root_pos, root_quat = fused.frame[root]
-                inverse = np.zeros(4)
-                mujoco.mju_negQuat(inverse, root_quat)
-                pos, q = compose(np.zeros(3), inverse, pos - root_pos, q)
-            frame[i, side] = mocap_frame.get(root, fused.body_of(m, mj_body))
+            frame[i, side], *pose = fused.moving_frame(m, mj_body)  # a mocap body's own frame for its side
+            pos, q = compose(*pose, *local)
             body[i, side] = fused.body_of(m, mj_body)
-            anchor[i, side] = pos - fused.com_of(m, mj_body)
+            anchor[i, side] = pos
             quat[i, side] = q / np.linalg.norm(q)
             invweight[i, side] = m.body_invweight0[mj_body]
         torquescale[i] = data[10] if weld else 0.0
