@@ -219,3 +219,25 @@ def test_per_env_mocap_platforms_in_the_step_kernel():
     moved = stepper.for_system(per_env.replace(mocap_pos=platforms.flip(0)))
     moved(got, ctrl)
     assert moved.num_kernels == 1 and moved._kernel() is stepper._kernel()
+
+
+def test_gradient_through_a_mocap_contact():
+    """The cube's x after 0.1 s of the paddle held 1 cm into it (soft contacts) is differentiable in the paddle's
+    mocap position: autograd equals central differences to 1e-6 relative (round-off of a 1e-6 m step), and the
+    paddle pushes (d x / d paddle_x > 0)."""
+    base = torchsim.load_mjcf(floating(paddle_and_cube)(0.01), dtype=F64, contact_model="soft")
+
+    def cube_x_after(paddle):
+        sys = base.replace(mocap_pos=paddle[None, None])
+        state = torchsim.init(sys, sys.q0[None], torch.zeros(1, sys.nv, dtype=F64))
+        for _ in range(10):
+            state = torchsim.step(sys, state, torch.zeros(1, 0, dtype=F64))
+        return state.q[0, 0]
+
+    paddle = torch.tensor([-0.14, 0.0, 0.1], dtype=F64, requires_grad=True)
+    grad, = torch.autograd.grad(cube_x_after(paddle), paddle)
+    with torch.no_grad():
+        central = torch.stack([(cube_x_after(paddle + 1e-6 * e) - cube_x_after(paddle - 1e-6 * e)) / 2e-6
+                               for e in torch.eye(3, dtype=F64)])
+    assert grad[0] > 0.1
+    torch.testing.assert_close(grad, central, rtol=1e-6, atol=1e-8)
