@@ -101,7 +101,8 @@ def load_mjcf(
         method: ``"xpbd"`` (position-based projection of joints, limits and contacts) or ``"spring"`` (explicit
             stiff springs for joints and limits, velocity impulses for contacts, in the spirit of Brax v1).
         substeps: substeps per ``<option timestep>``, a positive integer; default ``ceil(timestep / h)`` with h = 0.5 ms
-            (ant: 20).
+            (ant: 20), raised (spring method, with a warning) where a joint would sag more than 3e-5 rad under the
+            model's weight (a robot arm fixed to the world, ``torchsim.io_mjcf.spring_stability.stiff_enough``).
         joint_stiffness: spring method only: fraction of a joint's error its spring removes per substep
             (gain ``stiffness / h^2 K^-1``, ``K`` the joint's inverse-inertia block); default
             ``JOINT_STIFFNESS = 0.2``.
@@ -137,7 +138,8 @@ def load_mjcf(
         raise ValueError(f"contact_model='soft' is implemented for the spring method only, not {method!r}")
     m = mujoco_model(source, max_hull_vertices)
     check_supported(m)
-    if substeps is None:
+    free_substeps = substeps is None
+    if free_substeps:
         substeps = max(1, int(np.ceil(m.opt.timestep / METHODS[method].default_substep_timestep - 1e-9)))
     _check_substeps(substeps)
     fused, fields = fuse_bodies(m)
@@ -157,6 +159,7 @@ def load_mjcf(
     )
     if method == "spring":
         sys = _stable_springs(sys, joint_stiffness is None, joint_damping is None)
+        sys = spring_stability.stiff_enough(sys, free_substeps)
     return sys.to(device=device, dtype=dtype)
 
 
