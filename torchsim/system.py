@@ -214,7 +214,8 @@ class System:
         the frame the geom moves with, indexing the ext bodies followed by the mocap bodies (``N + 1 + k``): its
         body's, or mocap body ``k``'s.  geom_pos, geom_quat: (G, 3), (G, 4) from that frame's origin (a body's COM)
         in that frame (world frame for static geoms).  contact_mocap: whether any contact pair has a mocap body's
-        geom (static structure: a model without reads no mocap pose in ``torchsim.collision``).  geom_size: (G, 3) MuJoCo sizes.  contact_groups: one per shape pair.
+        geom (static structure: a model without reads no mocap pose in ``torchsim.collision``).  geom_size: (G, 3)
+        MuJoCo sizes.  contact_groups: one per shape pair.
         geom_hull_vert: (G, V, 3) [m] each colliding mesh geom's convex hull vertices, geom frame, padded to the
         model's largest hull (``V`` vertices, 0 without colliding meshes; ``torchsim.io_mjcf.meshes``);
         geom_hull_real: (G, V) false at padding; geom_hull_edge: (G, V, D, 3) [m] the edges from each hull vertex
