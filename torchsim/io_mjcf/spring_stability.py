@@ -146,9 +146,12 @@ def gravity_sag(sys: System) -> tuple[float, int]:
 def stiff_enough(sys: System, free_substeps: bool) -> System:
     """``sys`` with its substeps raised, where the caller left them to the default (``free_substeps``), until every
     spring joint's gravity sag (:func:`gravity_sag`) is within ``SAG_LIMIT``, with a warning; given substeps are
-    kept (the envs choose theirs by measurement)."""
+    kept (the envs choose theirs by measurement), and so are a model's with welds or connects (``sys.welds``): they
+    may carry the weight (an arm held by its gripper's weld to a mocap target), and the sag leaves them out."""
+    if not free_substeps or sys.welds:
+        return sys
     sag, joint = gravity_sag(sys)
-    if not free_substeps or not sag > SAG_LIMIT:
+    if not sag > SAG_LIMIT:
         return sys
     substeps = math.ceil(sys.substeps * math.sqrt(sag / SAG_LIMIT) - 1e-9)
     body = sys.body_names[int(sys.jnt_child[joint])]
