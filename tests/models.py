@@ -168,6 +168,35 @@ def rest_pose(xml: str, method: str, seconds: float) -> tuple[np.ndarray, np.nda
     return d.qpos.copy(), state.q[0].numpy()
 
 
+def mujoco_rollout(xml: str, q0, qd0, steps: int, divide: int = 1) -> np.ndarray:
+    """MuJoCo's ``qpos`` ``(steps, nq)`` after each of ``steps`` timesteps of ``xml`` from ``q0``, ``qd0`` (zero
+    controls), integrated at ``timestep / divide``."""
+    m = mujoco.MjModel.from_xml_string(xml)
+    m.opt.timestep /= divide
+    d = mujoco.MjData(m)
+    d.qpos[:], d.qvel[:] = q0, qd0
+    out = []
+    for _ in range(steps):
+        mujoco.mj_step(m, d, nstep=divide)
+        out.append(d.qpos.copy())
+    return np.array(out)
+
+
+def rollout_errors(sys, q0, qd0, reference: np.ndarray) -> tuple[float, float]:
+    """torchsim's passive rollout of ``sys`` (batch 1, eager, zero controls) from ``q0``, ``qd0`` for the steps of
+    ``reference (steps, nq)``: the largest ``|q - reference|`` [rad or m] and the largest joint anchor gap [m]."""
+    import torchsim  # engine code, imported where a test asks for it
+
+    state = torchsim.init(sys, torch.as_tensor(q0, dtype=sys.dtype)[None], torch.as_tensor(qd0, dtype=sys.dtype)[None])
+    ctrl = torch.zeros(1, sys.nu, dtype=sys.dtype)
+    err = gap = 0.0
+    for expected in reference:
+        state = torchsim.step(sys, state, ctrl)
+        err = max(err, np.abs(state.q[0].numpy() - expected).max())
+        gap = max(gap, torchsim.kinematics.anchor_gap(sys, state).max().item())
+    return err, gap
+
+
 def axis_z(quat) -> float:
     """World z component of a body's local z axis, for its ``wxyz`` quaternion."""
     mat = np.zeros(9)

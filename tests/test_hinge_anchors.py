@@ -7,7 +7,7 @@ import pytest
 import torch
 
 import torchsim
-from models import F64, METHODS, quat_dist
+from models import F64, METHODS, mujoco_rollout, quat_dist, rollout_errors
 
 # A free torso; a shin on one hinge; a foot turned about a y hinge at z = .08 (with ref) then an oblique hinge at
 # another point (the dm_control humanoid's ankles, moved off the foot's axis), carrying a welded toe; a toe flap on
@@ -94,20 +94,6 @@ def test_forward_kinematics_and_q_match_mujoco():
     assert torchsim.kinematics.anchor_gap(sys, state).max() < 1e-12
 
 
-def _mujoco_rollout(q0, steps, divide=1):
-    """MuJoCo's qpos after each of ``steps`` timesteps of CHAIN, integrated at ``timestep / divide``."""
-    m = mujoco.MjModel.from_xml_string(CHAIN)
-    m.opt.timestep /= divide
-    d = mujoco.MjData(m)
-    d.qpos[:] = q0
-    out = []
-    for _ in range(steps):
-        for _ in range(divide):
-            mujoco.mj_step(m, d)
-        out.append(d.qpos.copy())
-    return np.array(out)
-
-
 # Substeps of 1 ms, half the default's count, to keep the test short (~1.5 s CPU for spring, ~3 s for xpbd).
 # Measured max |q - q_mujoco| over the 0.5 s: spring 0.0074 rad, xpbd 0.0085 rad, where MuJoCo at 2 ms and at 0.5 ms
 # differ by 0.0055 rad (the bound is twice that). With the default 0.5 ms substeps: spring 0.0064 (and within 0.0011
@@ -122,16 +108,10 @@ def test_chain_follows_mujoco(method):
     quarter of it, and the anchors stay together (< 1 mm)."""
     q0 = np.array([0.8, -0.4, 0.6])
     steps = 250
-    ref, fine = _mujoco_rollout(q0, steps), _mujoco_rollout(q0, steps, divide=4)
+    ref, fine = (mujoco_rollout(CHAIN, q0, np.zeros(3), steps, divide) for divide in (1, 4))
     bound = 2 * np.abs(ref - fine).max()
     sys = torchsim.load_mjcf(CHAIN, method=method, substeps=SUBSTEPS, dtype=F64)
-    state = torchsim.init(sys, torch.tensor(q0)[None], torch.zeros(1, 3, dtype=F64))
-    ctrl = torch.zeros(1, 0, dtype=F64)
-    err = gap = 0.0
-    for k in range(steps):
-        state = torchsim.step(sys, state, ctrl)
-        err = max(err, np.abs(state.q[0].numpy() - ref[k]).max())
-        gap = max(gap, torchsim.kinematics.anchor_gap(sys, state).item())
+    err, gap = rollout_errors(sys, q0, np.zeros(3), ref)
     print(f"{method}: max |q - q_mujoco| {err:.2e} rad (bound {bound:.2e}), max anchor gap {gap:.1e} m")
     assert err < bound
     assert gap < 1e-3

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 import torchsim
-from models import F64, METHODS, quat_dist
+from models import F64, METHODS, mujoco_rollout, quat_dist, rollout_errors
 
 # The dog's left scapula (dm_control suite/dog.xml): hinges about z, x and (.287, .958, 0) (non-orthogonal), each at
 # its own anchor; here under a free torso, with a ref on the first hinge, a leg on one more hinge below it, and a
@@ -101,20 +101,6 @@ def test_forward_kinematics_and_q_match_mujoco():
     assert torchsim.kinematics.anchor_gap(sys, state).max() < 1e-10
 
 
-def _mujoco_rollout(xml, q0, qd0, steps, divide=1):
-    """MuJoCo's qpos after each of ``steps`` timesteps of ``xml``, integrated at ``timestep / divide``."""
-    m = mujoco.MjModel.from_xml_string(xml)
-    m.opt.timestep /= divide
-    d = mujoco.MjData(m)
-    d.qpos[:], d.qvel[:] = q0, qd0
-    out = []
-    for _ in range(steps):
-        for _ in range(divide):
-            mujoco.mj_step(m, d)
-        out.append(d.qpos.copy())
-    return np.array(out)
-
-
 # The spring method at 1 ms substeps (half the default's count: ~2.5 s a rollout), xpbd at the default 0.5 ms, its
 # error being first order in the substep (oblique pair, against MuJoCo at dt/8: 0.0052, 0.0026, 0.00067 rad at 2,
 # 4, 16 substeps; spring 0.0010, 0.00033, 0.00017). Measured max |q - q_mujoco(dt/4)| over the 0.5 s, spring /
@@ -140,17 +126,11 @@ def test_passive_swing_follows_mujoco(scene, method):
     xml, dq0, qd0 = SCENES[scene]
     q0 = mujoco.MjModel.from_xml_string(xml).qpos0 + dq0
     steps = 250
-    ref, fine = (_mujoco_rollout(xml, q0, qd0, steps, divide) for divide in (1, 4))
+    ref, fine = (mujoco_rollout(xml, q0, qd0, steps, divide) for divide in (1, 4))
     bound = 2 * np.abs(ref - fine).max()
     assert np.abs(fine - fine[0]).max() > 0.2  # the scene does what the test is about: the hinges turn
     sys = torchsim.load_mjcf(xml, method=method, substeps=SUBSTEPS[method], dtype=F64)
-    state = torchsim.init(sys, torch.tensor(q0)[None], torch.tensor(qd0, dtype=F64)[None])
-    ctrl = torch.zeros(1, 0, dtype=F64)
-    err = gap = 0.0
-    for k in range(steps):
-        state = torchsim.step(sys, state, ctrl)
-        err = max(err, np.abs(state.q[0].numpy() - fine[k]).max())
-        gap = max(gap, torchsim.kinematics.anchor_gap(sys, state).item())
+    err, gap = rollout_errors(sys, q0, qd0, fine)
     print(f"{scene} {method}: max |q - q_mujoco| {err:.2e} rad (bound {bound:.2e}), max anchor gap {gap:.1e} m")
     assert err < bound
     assert gap < 1e-3
