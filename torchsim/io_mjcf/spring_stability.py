@@ -57,12 +57,13 @@ class _Linearised(NamedTuple):
     errors: list  # per joint, E_j (6 x 6 B): the bodies' twists -> its anchor [m] and rotation [rad] errors
     gains: list  # per joint, G_j (6 x 6), the spring's gain (lin, ang blocks; per h^2 / kappa)
     mass: np.ndarray  # (B,) [kg] of the moving bodies
+    hinge_axes: np.ndarray  # (3, H) the hinge dofs' world axes
 
 
 def _linearised(sys: System) -> _Linearised | None:
     """``sys``'s springs linearised at ``qpos0``; ``None`` for a model without spring joints."""
     from torchsim import rigid, spatial
-    from torchsim.kinematics import forward, joint_frames, with_world
+    from torchsim.kinematics import dof_values, forward, joint_frames, with_world
     from torchsim.methods.spring import joint_gain
 
     sys = sys.to(dtype=torch.float64)
@@ -99,7 +100,8 @@ def _linearised(sys: System) -> _Linearised | None:
         values, vectors = np.linalg.eigh(inv_inertia[:, :, b])
         root[6 * i:6 * i + 3, 6 * i:6 * i + 3] = np.sqrt(inv_mass[b]) * np.eye(3)
         root[6 * i + 3:6 * i + 6, 6 * i + 3:6 * i + 6] = (vectors * np.sqrt(values.clip(min=0.0))) @ vectors.T
-    return _Linearised(moving, slot, root @ h @ root, root, errors, gains, 1.0 / inv_mass[moving])
+    hinge_axes = dof_values(sys, fr.axes)[..., 0][:, sys.dof_is_hinge].numpy()
+    return _Linearised(moving, slot, root @ h @ root, root, errors, gains, 1.0 / inv_mass[moving], hinge_axes)
 
 
 def stability_number(sys: System) -> tuple[float, int]:
@@ -126,12 +128,20 @@ def gravity_sag(sys: System) -> tuple[float, int]:
     ``A = M^-1/2 H M^-1/2`` of eigenvalue 0 are the joints' free motions, which the load accelerates; each
     constrained mode (``lam > 0``) settles at ``y = h^2 / (kappa lam) v^T M^-1/2 F``: the sag, ``h^2 / kappa``
     times the load over the spring's gain. A floating base falls freely and its joints carry no weight (every env
-    model in ``envs/assets``: 1e-7 rad or less); a base fixed to the world hangs its links' weight on the joints."""
+    model in ``envs/assets``: 1e-7 rad or less); a base fixed to the world hangs its links' weight on the joints.
+
+    A planar mechanism whose weight acts across its plane (every hinge axis parallel to gravity) counts as sagging
+    none: its joints sag out of the plane, by symmetry a change its motion in the plane does not see at first order
+    (gymnasium's and dm_control's reacher and swimmer sag 5e-4 to 3e-3 rad at their default substeps and track
+    MuJoCo to 2e-5 rad or better, docs/models.md)."""
     lin = _linearised(sys)
     if lin is None or not np.isfinite(lin.a).all():
         return 0.0, -1
-    weight = np.zeros(lin.a.shape[0])
     gravity = sys.gravity.double().numpy()
+    directions = np.concatenate((lin.hinge_axes, gravity[:, None] / max(np.linalg.norm(gravity), 1e-300)), 1)
+    if not (np.linalg.svd(directions, compute_uv=False)[1:] > 1e-6).any():  # all along one line
+        return 0.0, -1
+    weight = np.zeros(lin.a.shape[0])
     for i in range(len(lin.moving)):
         weight[6 * i:6 * i + 3] = lin.mass[i] * gravity
     values, vectors = np.linalg.eigh(lin.a)
