@@ -4,6 +4,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
+import pytest
 import torch
 
 REPO = Path(__file__).resolve().parent.parent
@@ -195,6 +196,32 @@ def rollout_errors(sys, q0, qd0, reference: np.ndarray) -> tuple[float, float]:
         err = max(err, np.abs(state.q[0].numpy() - expected).max())
         gap = max(gap, torchsim.kinematics.anchor_gap(sys, state).max().item())
     return err, gap
+
+
+def cached_third_party(pattern: str) -> str:
+    """The first file matching ``pattern`` (a glob below ``~/.cache/torchsim/third_party``, where
+    ``studies/check_robot_models.py`` unpacks the packages' wheels); the test is skipped where none is."""
+    paths = sorted((Path.home() / ".cache" / "torchsim" / "third_party").glob(pattern))
+    if not paths:
+        pytest.skip(f"{pattern} is not cached (studies/check_robot_models.py unpacks it)")
+    return str(paths[0])
+
+
+def kernel_beside_reference(per_env, start, steps: int = 20):
+    """``steps`` steps of the step kernel (one thread) and of the reference step on ``per_env`` (a System with
+    per-env mocap poses) from ``start``, zero controls: the stepper and both final states. Then the envs' mocap
+    poses swapped: the stepper takes them as new inputs of the same kernel."""
+    import torchsim  # engine code, imported where a test asks for it
+
+    stepper = torchsim.Stepper(per_env, "kernel", threads=1)
+    ctrl = torch.zeros(start.q.shape[0], per_env.nu, dtype=per_env.dtype)
+    expected = got = start
+    for _ in range(steps):
+        expected, got = torchsim.step(per_env, expected, ctrl), stepper(got, ctrl)
+    moved = stepper.for_system(per_env.replace(mocap_pos=per_env.mocap_pos.flip(0)))
+    moved(got, ctrl)
+    assert moved.num_kernels == 1 and moved._kernel() is stepper._kernel()
+    return stepper, expected, got
 
 
 def axis_z(quat) -> float:

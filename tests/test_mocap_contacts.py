@@ -4,15 +4,13 @@ MuJoCo's mocap geoms do. Checked against MuJoCo's ``mj_collision`` at mocap pose
 rollouts of a cube carried by a rising mocap platform and pushed by a mocap paddle.
 """
 
-import glob
-import os
-
 import mujoco
 import numpy as np
 import pytest
 import torch
 
 import torchsim
+from models import F64, cached_third_party, kernel_beside_reference
 from torchsim import lanes
 from torchsim.collision import contacts
 from torchsim.execution.kernel import emit_cuda
@@ -20,7 +18,6 @@ from torchsim.execution.kernel.step import StepKernel
 from torchsim.io_mjcf import UnsupportedMJCFError
 from torchsim.kinematics import with_world
 
-F64 = torch.float64
 ROUNDOFF = 1e-9  # [m] sphere-box and capsule-sphere contacts are exact: float64 round-off of the same geometry
 
 PAIRS = """<mujoco><option gravity="0 0 0"/><worldbody>
@@ -194,11 +191,7 @@ def test_plane_on_mocap_body_refused_by_name():
 
 def test_dm_control_testing_cartpole_loads():
     """dm_control's testing cartpole, refused before for its mocap geoms' default conaffinity (no pair matches)."""
-    pattern = "~/.cache/torchsim/third_party/dm_control-*/dm_control/mujoco/testing/assets/cartpole.xml"
-    paths = sorted(glob.glob(os.path.expanduser(pattern)))
-    if not paths:
-        pytest.skip("dm_control's testing cartpole.xml is not cached (studies/check_robot_models.py)")
-    sys = torchsim.load_mjcf(paths[0])
+    sys = torchsim.load_mjcf(cached_third_party("dm_control-*/dm_control/mujoco/testing/assets/cartpole.xml"))
     assert sys.mocap_pos.shape == (2, 3) and not sys.contact_mocap
 
 
@@ -209,18 +202,11 @@ def test_per_env_mocap_platforms_in_the_step_kernel():
     sys = torchsim.load_mjcf(platform_and_cube(0.01), dtype=F64)
     platforms = torch.tensor([[[0.0, 0.0, 0.5]], [[0.0, 0.0, 0.52]], [[0.05, 0.0, 0.48]]], dtype=F64)
     per_env = sys.replace(mocap_pos=platforms, mocap_quat=sys.mocap_quat.expand(3, -1, -1))
-    stepper = torchsim.Stepper(per_env, "kernel", threads=1)
     start = torchsim.init(sys, sys.q0.expand(3, -1), torch.zeros(3, sys.nv, dtype=F64))
-    ctrl = torch.zeros(3, 0, dtype=F64)
-    expected, got = start, start
-    for _ in range(20):
-        expected, got = torchsim.step(per_env, expected, ctrl), stepper(got, ctrl)
+    stepper, expected, got = kernel_beside_reference(per_env, start)
     assert stepper.strategy == "kernel"
     assert (expected.q[:, 2] - start.q[:, 2]).abs().max() > 1e-2  # the raised and lowered platforms moved them
     assert (got.q - expected.q).abs().max() < 1e-9
-    moved = stepper.for_system(per_env.replace(mocap_pos=platforms.flip(0)))
-    moved(got, ctrl)
-    assert moved.num_kernels == 1 and moved._kernel() is stepper._kernel()
 
 
 def test_gradient_through_a_mocap_contact():

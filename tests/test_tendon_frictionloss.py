@@ -8,20 +8,17 @@ stopped. MuJoCo's friction is a soft constraint (it creeps and lags a little), s
 reference where there is one, and MuJoCo at a 4x finer timestep where there is none.
 """
 
-import glob
-import os
-
 import mujoco
 import numpy as np
 import pytest
 import torch
 
 import torchsim
+from models import F64, cached_third_party
 from torchsim.execution.kernel import emit_cuda
 from torchsim.execution.kernel.step import StepKernel
 from torchsim.io_mjcf import UnsupportedMJCFError
 
-F64 = torch.float64
 MJ_DT = 0.002
 STEP = 0.01  # our step and the sampling interval [s]
 COEF_A, COEF_B = 0.5, -1.0
@@ -151,20 +148,13 @@ def test_frictionloss_on_spatial_tendon_or_slides_is_refused():
         torchsim.load_mjcf(slide)
 
 
-def _jaco_gripper():
-    pattern = "~/.cache/torchsim/third_party/robosuite-*/robosuite/models/assets/grippers/jaco_three_finger_gripper.xml"
-    paths = sorted(glob.glob(os.path.expanduser(pattern)))
-    if not paths:
-        pytest.skip("robosuite's jaco_three_finger_gripper.xml is not cached (studies/check_robot_models.py)")
-    return paths[0]
-
-
 def test_robosuite_jaco_gripper_loads_and_steps():
     """robosuite's three-finger Jaco gripper: each finger's two hinges coupled by a fixed tendon with frictionloss
     0.4 (and an equality holding it). It loads (hulls capped as the model check does), carries the three tendons'
     friction rows, and two passive steps stay finite (its loader picks 124 substeps a step; the rollout against
     MuJoCo is the model check's: PASS, ratio 0.87 with max_hull_vertices=64)."""
-    sys = torchsim.load_mjcf(_jaco_gripper(), max_hull_vertices=64, dtype=F64)
+    sys = torchsim.load_mjcf(cached_third_party("robosuite-*/robosuite/models/assets/grippers/jaco_three_finger_gripper.xml"),
+                             max_hull_vertices=64, dtype=F64)
     assert sys.ten_friction.numel() == 3 and sys.ten_friction_dof.numel() == 6
     state = torchsim.init(sys, sys.q0.expand(1, -1), torch.zeros(1, sys.nv, dtype=F64))
     for _ in range(2):
