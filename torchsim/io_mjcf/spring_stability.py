@@ -57,7 +57,6 @@ class _Linearised(NamedTuple):
     a: np.ndarray  # M^-1/2 H M^-1/2 (6 B x 6 B): M^-1 H's eigenvalues, symmetric
     root: np.ndarray  # M^-1/2
     errors: list  # per joint, E_j (6 x 6 B): the bodies' twists -> its anchor [m] and rotation [rad] errors
-    gains: list  # per joint, G_j (6 x 6), the spring's gain (lin, ang blocks; per h^2 / kappa)
     mass: np.ndarray  # (B,) [kg] of the moving bodies
     hinge_axes: np.ndarray  # (3, H) the hinge dofs' world axes
 
@@ -82,7 +81,7 @@ def _linearised(sys: System) -> _Linearised | None:
     moving = sorted({int(b) for b in np.concatenate((child, parent)) if b < n})  # bodies a spring acts on
     slot = {b: i for i, b in enumerate(moving)}
     h = np.zeros((6 * len(moving), 6 * len(moving)))
-    errors, gains = [], []
+    errors = []
     for j in range(gain.shape[-1]):
         g = np.zeros((6, 6))
         g[:3, :3], g[3:, 3:] = gain[:, :, 0, j], gain[:, :, 1, j]
@@ -94,7 +93,6 @@ def _linearised(sys: System) -> _Linearised | None:
                 e[:, 6 * slot[b]:6 * slot[b] + 6] += sign * block
         h += e.T @ g @ e
         errors.append(e)
-        gains.append(g)
     inv_mass = inv.mass[..., 0].numpy().reshape(-1)
     inv_inertia = inv.inertia[..., 0].numpy()
     root = np.zeros_like(h)  # M^-1/2, so that M^-1/2 H M^-1/2 (symmetric, M^-1 H's eigenvalues) takes eigh
@@ -103,7 +101,7 @@ def _linearised(sys: System) -> _Linearised | None:
         root[6 * i:6 * i + 3, 6 * i:6 * i + 3] = np.sqrt(inv_mass[b]) * np.eye(3)
         root[6 * i + 3:6 * i + 6, 6 * i + 3:6 * i + 6] = (vectors * np.sqrt(values.clip(min=0.0))) @ vectors.T
     hinge_axes = dof_values(sys, fr.axes)[..., 0][:, sys.dof_is_hinge].numpy()
-    return _Linearised(moving, slot, root @ h @ root, root, errors, gains, 1.0 / inv_mass[moving], hinge_axes)
+    return _Linearised(moving, slot, root @ h @ root, root, errors, 1.0 / inv_mass[moving], hinge_axes)
 
 
 def stability_number(sys: System) -> tuple[float, int]:
@@ -118,7 +116,6 @@ def stability_number(sys: System) -> tuple[float, int]:
     values, vectors = np.linalg.eigh(lin.a)
     weight = (vectors[:, -1] ** 2).reshape(-1, 6).sum(1)  # in mass-weighted coordinates: each body's share
     return float(values[-1]), lin.moving[int(np.argmax(weight))]
-
 
 
 def gravity_sag(sys: System) -> tuple[float, int]:
