@@ -38,7 +38,7 @@ ARM = """
     </body>
   </worldbody>
 </mujoco>"""
-STEPS = 100  # 0.2 s from rest: the hand's offset COM swings the arm (~10 s for the test at the raised substeps)
+STEPS = 100  # 0.2 s from rest: the hand's offset COM swings the arm (~9 s for the test at the raised substeps)
 
 
 def _load(xml, **options):
@@ -72,8 +72,8 @@ def _errors(xml, sys, steps):
 
 def test_sag_goes_as_substep_squared_over_stiffness():
     """The sag is quasi-static: ``h^2 / kappa`` times the load over the gain (4x less at twice the substeps, 2x more
-    at half the stiffness), and at the default 0.5 ms substeps the wrist's sag is 380x the limit. (The planar arm
-    below, at 4 substeps, missed MuJoCo by 4.6x its dt sensitivity; at 86 substeps 0.32x.)"""
+    at half the stiffness), and at the default 0.5 ms substeps the wrist's sag is 90x the limit. (The planar arm
+    below, at 4 substeps, missed MuJoCo by 4.6x its dt sensitivity; at the rule's 86 substeps 0.32x.)"""
     sys, _ = _load(ARM, substeps=4)
     sag, joint = spring_stability.gravity_sag(sys)
     assert sys.body_names[int(sys.jnt_child[joint])] in ("wrist", "hand")
@@ -101,7 +101,7 @@ def test_given_default_substeps_the_arm_misses_mujoco():
 
 def test_default_substeps_are_raised_until_the_arm_tracks_mujoco():
     """At the default the loader raises the substeps (one warning naming them) so that the sag is within the limit,
-    and the rollout then tracks MuJoCo within 2x its own timestep sensitivity (measured: 0.32x at 79 substeps)."""
+    and the rollout then tracks MuJoCo within 2x its own timestep sensitivity (measured: 0.32x at 38 substeps)."""
     sys, caught = _load(ARM)
     assert sys.substeps > 4
     assert spring_stability.gravity_sag(sys)[0] <= spring_stability.SAG_LIMIT
@@ -117,13 +117,13 @@ ENV_ASSETS = Path(__file__).resolve().parent.parent / "envs" / "assets"
 @pytest.mark.parametrize("name", sorted(p.stem for p in ENV_ASSETS.glob("*.xml")))
 def test_env_models_keep_their_substeps(name):
     """The envs' models are floating bases, fixed-base arms in zero gravity or pendulums on slides: their joints
-    carry at most 2e-7 rad of sag (the inverted pendulum's pole, 1.8e-7: 38x below the limit), so their default
-    substeps stay as they were, without a warning, and the rule costs little at load (< 0.1 s)."""
+    carry at most 2e-7 rad of sag (the inverted pendulum's pole, 1.8e-7), so their default substeps stay as they
+    were, without a warning, and the rule costs little at load (< 0.1 s)."""
     path = ENV_ASSETS / f"{name}.xml"
     m = mujoco.MjModel.from_xml_path(str(path))
     sys, caught = _load(str(path))
     assert sys.substeps == max(1, int(np.ceil(m.opt.timestep / 5e-4 - 1e-9)))
     assert not any("substeps" in w for w in caught), caught
     start = time.perf_counter()
-    assert spring_stability.gravity_sag(sys)[0] <= spring_stability.SAG_LIMIT / 30
+    assert spring_stability.gravity_sag(sys)[0] <= spring_stability.SAG_LIMIT / 100
     assert time.perf_counter() - start < 0.1

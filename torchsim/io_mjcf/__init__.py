@@ -101,7 +101,7 @@ def load_mjcf(
         method: ``"xpbd"`` (position-based projection of joints, limits and contacts) or ``"spring"`` (explicit
             stiff springs for joints and limits, velocity impulses for contacts, in the spirit of Brax v1).
         substeps: substeps per ``<option timestep>``, a positive integer; default ``ceil(timestep / h)`` with h = 0.5 ms
-            (ant: 20), raised (spring method, with a warning) where a joint would sag more than 7e-6 rad under the
+            (ant: 20), raised (spring method, with a warning) where a joint would sag more than 3e-5 rad under the
             model's weight (a robot arm fixed to the world, ``torchsim.io_mjcf.spring_stability.stiff_enough``).
         joint_stiffness: spring method only: fraction of a joint's error its spring removes per substep
             (gain ``stiffness / h^2 K^-1``, ``K`` the joint's inverse-inertia block); default
