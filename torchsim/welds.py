@@ -108,6 +108,16 @@ def _rows(sys: System, bodies: Bodies, inv: rigid.InverseInertia):
     return r, v, arm, g, a, imp
 
 
+def _rates(sys: System, bodies: Bodies, arm: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
+    """The rows' rates ``(6, W, B)`` under the velocities of ``bodies``, at the poses the arms ``(3, 2, W, B)`` and
+    the rotation rows' Jacobian ``G`` of :func:`_rows` were taken at (the rates are linear in the velocities)."""
+    index = sys.weld_frame.T.reshape(-1)
+    vel, ang = (torch.cat((x, x.new_zeros(x.shape[:-2] + (sys.mocap_pos.shape[-2], x.shape[-1]))), -2)
+                .index_select(-2, index).unflatten(-2, (2, -1)) for x in (bodies.xd_vel, bodies.xd_ang))  # mocap: at rest
+    point_vel = vel + spatial.cross(ang, arm)
+    return torch.cat((point_vel[:, 0] - point_vel[:, 1], spatial.matvec(g, ang[:, 0] - ang[:, 1])))
+
+
 def impulses(sys: System, start: Bodies, free: Bodies, inv: rigid.InverseInertia, h: float) -> Bodies:
     """``free`` (the substep's velocities after every other force, at the poses of ``start``) after every weld's
     and connect's soft-constraint impulse over the substep ``h``, sized and applied on the inverse inertias ``inv``
@@ -115,7 +125,7 @@ def impulses(sys: System, start: Bodies, free: Bodies, inv: rigid.InverseInertia
     ``(A + R) p = v + h aref - v_free``, ``v`` the rows' rate at the substep's start, ``v_free`` after the other
     forces (``a0 = (v_free - v) / h``). Only called for a System with welds (``sys.welds``)."""
     r, v, arm, g, a, imp = _rows(sys, start, inv)
-    v_free = residuals(sys, free)[1]
+    v_free = _rates(sys, free, arm, g)  # the poses are start's: only the velocities changed
     k, b = lanes.param(sys.weld_gains, 2).unbind(-2)
     p = spatial.spd_solve(a, v + h * (-b * v - k * imp * r) - v_free)
     return rigid.apply_pair_velocity(free, inv, sys.weld_body[:, 0], sys.weld_body[:, 1], arm[:, 0], arm[:, 1], p[:3],
