@@ -137,10 +137,8 @@ def _round_box(shape, pa, rot_a, sa, pb, rot_b, sb):
     cands = [rot_b[:, 0], rot_b[:, 1], rot_b[:, 2], pa - pb, box_normal, -own_normal]
     if shape == "cylinder":
         cands += [rot_a[:, 2]] + [spatial.cross(rot_a[:, 2], rot_b[:, k]) for k in range(3)]
-    n_star, sep = collision_round.separating_normal(torch.stack(cands, -2), a, b, climb_best_only=True)
-    # a's support point and the box's are sep apart along n*: the point midway
-    pt_sep = pa - collision_round.offset(shape, rot_a, sa, n_star) - 0.5 * sep * n_star
-    pt_sep, n_sep, d_sep = pt_sep.unsqueeze(-2), n_star.unsqueeze(-2), sep.unsqueeze(-2)
+    pt_sep, n_sep, d_sep = collision_round.separation_contact(torch.stack(cands, -2), a, b, climb_best_only=True)
+    n_star = n_sep.select(-2, 0)
     if shape == "ellipsoid":
         return pt_sep, n_sep, d_sep
     box, cyl = ((x.unsqueeze(-2) for x in y) for y in ((pb, rot_b, sb), (pa, rot_a, sa)))
@@ -185,6 +183,8 @@ def _pair_contacts(kind, pa, rot_a, sa, pb, rot_b, sb):
         return collision_round.ellipsoid_pair(pa, rot_a, sa, pb, rot_b, sb)
     if kind == "cylinder_cylinder":
         return collision_round.cylinder_pair(pa, rot_a, sa, pb, rot_b, sb)
+    if kind == "ellipsoid_cylinder":
+        return collision_round.ellipsoid_cylinder(pa, rot_a, sa, pb, rot_b, sb)
     if kind in ("ellipsoid_box", "cylinder_box"):
         return _round_box(kind[:-4], pa, rot_a, sa, pb, rot_b, sb)
     if kind == "box_box":

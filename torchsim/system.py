@@ -11,7 +11,7 @@ POINTS_PER_PAIR = {
     "capsule_capsule": 1, "sphere_box": 1, "capsule_box": 3, "box_box": 16,
     "ellipsoid_plane": 1, "cylinder_plane": 8, "sphere_ellipsoid": 1, "sphere_cylinder": 1, "capsule_ellipsoid": 3,
     "capsule_cylinder": 3, "ellipsoid_ellipsoid": 1, "cylinder_cylinder": 17, "ellipsoid_box": 1,
-    "cylinder_box": 29,
+    "cylinder_box": 29, "ellipsoid_cylinder": 1,
     # height fields: the deepest candidates kept per pair (``torchsim.collision_hfield``)
     "sphere_hfield": 4, "capsule_hfield": 10, "box_hfield": 12, "ellipsoid_hfield": 6, "cylinder_hfield": 12,
 }

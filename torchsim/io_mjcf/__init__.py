@@ -30,9 +30,8 @@ is harmless):
   them and collide with moving bodies as static geoms do (at rest, as in MuJoCo); bodies attached to them by joints
   are refused (``torchsim.io_mjcf.bodies``).
 - ``<skin>`` is ignored with a warning (it has no physics).
-- contact geoms: ``plane`` (static), ``sphere``, ``capsule``, ``box``, ``ellipsoid``, ``cylinder`` (against planes,
-  spheres and capsules, ellipsoid-ellipsoid and cylinder-cylinder, see ``torchsim.collision_round``;
-  ellipsoid-cylinder and either against a box are refused); pairs from ``contype``/``conaffinity``,
+- contact geoms: ``plane`` (static), ``sphere``, ``capsule``, ``box``, ``ellipsoid``, ``cylinder`` (every pair of
+  these; ellipsoids and cylinders in ``torchsim.collision_round``); pairs from ``contype``/``conaffinity``,
   ``<exclude>``, ``<contact><pair>`` and MuJoCo's parent filter. Geoms of other types that can never touch
   anything (``contype``/``conaffinity`` filtered out) only contribute mass and are accepted with a warning.
 - mesh geoms collide as the convex hull MuJoCo compiles for them (``torchsim.io_mjcf.meshes``), with planes,
