@@ -1,5 +1,5 @@
 """Rigid frames for the renderer: quaternions to rotation matrices, and every env's body frames read from a
-``torchsim.State`` with the static world appended (so that the world's ext index ``N`` and ``-1`` both select it).
+``torchsim.State`` with the static world appended (ext index ``N``), then the mocap bodies' frames.
 
 Kept apart from the engine's lane-layout helpers: the renderer works batch-first, ``(B, ..., 3)`` / ``(B, ..., 3, 3)``.
 """
@@ -24,14 +24,20 @@ def quat_to_mat_np(q) -> np.ndarray:
     return quat_to_mat(torch.as_tensor(np.asarray(q, dtype=np.float64))).numpy()
 
 
-def body_frames(x_pos: torch.Tensor, x_quat: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Every body's frame with the world appended: positions ``(B, N + 1, 3)`` (the body's centre of mass, as
-    ``State.x_pos``) and rotations ``(B, N + 1, 3, 3)`` from ``x_pos (B, N, 3)``, ``x_quat (B, N, 4)``."""
+def body_frames(x_pos: torch.Tensor, x_quat: torch.Tensor, mocap_pos: torch.Tensor | None = None,
+                mocap_quat: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Every body's frame with the world appended, then the mocap bodies' where given: positions
+    ``(B, N + 1 + K, 3)`` (a body's centre of mass, as ``State.x_pos``) and rotations ``(B, N + 1 + K, 3, 3)`` from
+    ``x_pos (B, N, 3)``, ``x_quat (B, N, 4)`` and ``mocap_pos (B, K, 3)``, ``mocap_quat (B, K, 4)`` (the frame
+    indices of ``System.geom_frame``; ``-1`` selects the world only where there are no mocap frames)."""
     batch = x_pos.shape[0]
-    pos = torch.cat((x_pos, x_pos.new_zeros(batch, 1, 3)), 1)
-    rot = quat_to_mat(x_quat)
-    eye = torch.eye(3, dtype=rot.dtype, device=rot.device).expand(batch, 1, 3, 3)
-    return pos, torch.cat((rot, eye), 1)
+    eye = torch.eye(3, dtype=x_pos.dtype, device=x_pos.device).expand(batch, 1, 3, 3)
+    pos = [x_pos, x_pos.new_zeros(batch, 1, 3)]
+    rot = [quat_to_mat(x_quat), eye]
+    if mocap_pos is not None:
+        pos.append(mocap_pos)
+        rot.append(quat_to_mat(mocap_quat))
+    return torch.cat(pos, 1), torch.cat(rot, 1)
 
 
 def place(pos: torch.Tensor, rot: torch.Tensor, body: torch.Tensor, local_pos: torch.Tensor,

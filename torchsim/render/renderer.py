@@ -1,6 +1,7 @@
 """``render``: depth, segmentation and RGB images of every env's cameras in one call, by ray casting.
 
-Per env only body poses change: the body frames are read from the state, the cameras and geoms placed on them,
+Per env only body poses change: the body frames are read from the state (and the mocap bodies' from the given
+mocap poses), the cameras and geoms placed on them,
 and every pixel's ray (through the pixel centre, MuJoCo's pinhole convention: :mod:`torchsim.render.camera`) is
 intersected with the geoms in closed form (:mod:`torchsim.render.raycast`), keeping the nearest hit
 (:mod:`torchsim.render.nearest`: culled by screen tiles by default). Colour, where asked, is the hit geom's colour
@@ -35,7 +36,8 @@ class Images(NamedTuple):
 def render(scene: Scene, state, camera=0, height: int = 64, width: int = 64, *, segmentation: bool = True,
            rgb: bool = False, shading: str = "lambert", ambient: float = 0.3, diffuse: float = 0.7,
            background_depth: float | None = None, background_rgb=(0.0, 0.0, 0.0), tile: int = 8,
-           compile: bool = False, max_tests: int | None = None) -> Images:
+           compile: bool = False, max_tests: int | None = None, mocap_pos: torch.Tensor | None = None,
+           mocap_quat: torch.Tensor | None = None) -> Images:
     """Images of ``camera`` in every env of ``state``.
 
     Args:
@@ -61,6 +63,10 @@ def render(scene: Scene, state, camera=0, height: int = 64, width: int = 64, *, 
             roughly 80-100 bytes each in float32 without culling, ~2-3 with it). Default on a CPU: 2^23 with
             tiles (the ant at 64x64: 146 envs per chunk, ~0.1 GiB), 2^22 without; on a GPU 2^27 and 2^24 (fewer,
             larger chunks: a GPU's call is launch-bound below a few thousand envs).
+        mocap_pos, mocap_quat: the mocap bodies' poses, ``(B, K, 3)``, ``(B, K, 4)`` per env or ``(K, 3)``,
+            ``(K, 4)`` for all (the System's ``mocap_pos``/``mocap_quat``, which the step reads: pass them where
+            they were set); default, either: the model's (``scene.mocap_pos``/``mocap_quat``). The geoms and
+            cameras of mocap bodies, and of the jointless bodies fused into them, are drawn at these poses.
 
     Geoms nearer than ``scene.znear`` or farther than ``scene.zfar`` are clipped, as in MuJoCo's renderer.
     Computation is in the state's dtype and on its device.
@@ -74,7 +80,10 @@ def render(scene: Scene, state, camera=0, height: int = 64, width: int = 64, *, 
     squeeze = (isinstance(camera, Camera) or not isinstance(camera, (list, tuple))) and cams.num == 1
     if scene.geom_pos.dtype != x_pos.dtype or scene.geom_pos.device != x_pos.device:
         scene = scene.to(x_pos.device, x_pos.dtype)
-    cams = cams.to(x_pos.device, x_pos.dtype)
+    # a camera's -1 stands for the world (Camera.look_at): frame N, the mocap frames following it
+    cams = cams._replace(body=torch.where(cams.body < 0, scene.num_bodies, cams.body)).to(x_pos.device, x_pos.dtype)
+    mocap_pos = _mocap(mocap_pos, scene.mocap_pos, x_pos, 3, "mocap_pos")
+    mocap_quat = _mocap(mocap_quat, scene.mocap_quat, x_pos, 4, "mocap_quat")
     xs, ys = pixel_rays(cams.fovy, height, width)
     background = scene.zfar if background_depth is None else float(background_depth)
     batch, per_env = x_pos.shape[0], max(1, cams.num * scene.num_geoms * height * width)
@@ -84,7 +93,8 @@ def render(scene: Scene, state, camera=0, height: int = 64, width: int = 64, *, 
     chunk = max(1, int(max_tests) // per_env)
     outs = []
     for start in range(0, batch, chunk):
-        pos, rot = body_frames(x_pos[start:start + chunk], x_quat[start:start + chunk])
+        pos, rot = body_frames(x_pos[start:start + chunk], x_quat[start:start + chunk],
+                               mocap_pos[start:start + chunk], mocap_quat[start:start + chunk])
         cam_pos, cam_rot = cams.poses(pos, rot)
         geom_pos, geom_rot = place(pos, rot, scene.geom_body, scene.geom_pos, scene.geom_rot)
         outs.append(_images(scene, cam_pos, cam_rot, geom_pos, geom_rot, xs, ys, background, segmentation, rgb,
@@ -93,6 +103,16 @@ def render(scene: Scene, state, camera=0, height: int = 64, width: int = 64, *, 
     if squeeze:
         depth, seg, colour = (x[:, 0] if x is not None else None for x in (depth, seg, colour))
     return Images(depth, seg, colour)
+
+
+def _mocap(given, model, x_pos, width, label):
+    """Mocap poses ``(B, K, width)`` in ``x_pos``'s dtype and device: ``given`` per env or shared, or ``model``'s."""
+    batch, count = x_pos.shape[0], model.shape[0]
+    value = model if given is None else torch.as_tensor(given)
+    if value.shape[-2:] != (count, width) or value.ndim not in (2, 3) or (value.ndim == 3 and value.shape[0] != batch):
+        raise ValueError(f"{label} must be ({count}, {width}) or ({batch}, {count}, {width}) for this scene's {count} "
+                         f"mocap bodies and {batch} envs, got {tuple(value.shape)}")
+    return value.to(x_pos.device, x_pos.dtype).expand(batch, count, width)
 
 
 def _images(scene, cam_pos, cam_rot, geom_pos, geom_rot, xs, ys, background, want_seg, want_rgb, tile, compiled,

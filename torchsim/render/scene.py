@@ -1,9 +1,13 @@
 """The static half of a rendered scene, built once per model and shared by every env of a batch.
 
 A :class:`Scene` holds what the camera can see that never changes between envs or steps: each visible geom's
-shape type, size, colour, pose relative to the torchsim body it rides on, and the model's cameras and clip
-distances. Per env only the body poses change (``State.x_pos``, ``State.x_quat``); :func:`torchsim.render.render`
-combines the two.
+shape type, size, colour, pose relative to the frame it rides on, and the model's cameras and clip distances. Per
+env only the frames' poses change: the bodies' (``State.x_pos``, ``State.x_quat``) and the mocap bodies'
+(``System.mocap_pos``, ``mocap_quat``, which may be set per env); :func:`torchsim.render.render` combines the two.
+
+Frames are indexed as ``System.geom_frame`` indexes them: the ``N`` torchsim bodies, the static world (``N``), then
+the ``M`` mocap bodies (``N + 1 + k``, MuJoCo's ``body_mocapid`` order): a geom or camera on a mocap body, or on a
+jointless body fused into one, rides on that mocap frame, so it is drawn where each env's mocap pose puts it.
 
 Geoms are taken from the ``mujoco.MjModel`` rather than from the ``System``, so visual-only geoms
 (``contype = conaffinity = 0``) are included; their MuJoCo body is mapped to the torchsim body it is fused into
@@ -49,14 +53,15 @@ class UnsupportedGeomError(ValueError):
 @dataclasses.dataclass(frozen=True)
 class Scene:
     """Static description of what cameras see. ``G`` rendered geoms, ``N`` torchsim bodies (ext index ``N``: the
-    world), ``M`` MuJoCo bodies.
+    world), ``M`` MuJoCo bodies, ``K`` mocap bodies (frames ``N + 1 + k``: the module docstring).
 
     Attributes:
         geom_id: (G,) MuJoCo geom id of each rendered geom (what segmentation images hold).
         geom_type: (G,) shape names (``SHAPES`` values, ``"mesh"`` or ``"hfield"``).
-        geom_body: (G,) ext index of the torchsim body carrying the geom.
-        geom_pos, geom_rot: (G, 3), (G, 3, 3) the geom's frame in its body's frame (the body COM frame of
-            ``State.x_pos``/``x_quat``; the world frame for static geoms).
+        geom_body: (G,) frame carrying the geom: a torchsim body's ext index, the world's (``N``), or a mocap
+            body's (``N + 1 + k``).
+        geom_pos, geom_rot: (G, 3), (G, 3, 3) the geom's frame in its carrier's frame (the body COM frame of
+            ``State.x_pos``/``x_quat``; the world frame for static geoms; the mocap body's frame).
         geom_size: (G, 3) MuJoCo sizes.  geom_rgba: (G, 4) colour as MuJoCo's renderer uses it.
         geom_radius: (G,) radius of a sphere about the geom's centre that holds it (inf: infinite planes).
         geom_mesh: (G,) index into ``meshes`` of each mesh or hfield geom's triangles (-1: neither).
@@ -67,8 +72,10 @@ class Scene:
         cameras: the model's ``<camera>`` elements (:class:`Camera`; may be empty).
         znear, zfar: clip distances [m], MuJoCo's ``vis.map.znear/zfar`` times ``stat.extent``; nothing nearer or
             farther is drawn, and empty pixels have depth ``zfar`` (as MuJoCo's depth buffer).
-        num_bodies: ``N``.  mjbody_body: (M,) ext index of each MuJoCo body's torchsim body; mjbody_pos,
+        num_bodies: ``N``.  mjbody_body: (M,) frame each MuJoCo body rides on (as ``geom_body``); mjbody_pos,
             mjbody_rot: (M, 3), (M, 3, 3) the MuJoCo body's frame in it.  mjbody_names: (M,) names.
+        mocap_pos, mocap_quat: (K, 3), (K, 4) the mocap bodies' model poses in the world (the System's at load),
+            where :func:`torchsim.render.render` draws them unless given per-env poses.
         skipped: names of geoms left out because their type is unsupported (``skip_unsupported=True``: SDFs).
         unsupported_cameras: ``(name, reason)`` of model cameras left out of ``cameras`` (modes other than fixed
             and track, orthographic or intrinsics cameras); selecting one by name raises with the reason.
@@ -95,6 +102,8 @@ class Scene:
     unsupported_cameras: tuple = ()
     geom_mesh: torch.Tensor | None = None
     meshes: Meshes | None = None
+    mocap_pos: torch.Tensor = dataclasses.field(default_factory=lambda: torch.zeros(0, 3, dtype=torch.float64))
+    mocap_quat: torch.Tensor = dataclasses.field(default_factory=lambda: torch.zeros(0, 4, dtype=torch.float64))
 
     @staticmethod
     def build(model, system, geom_groups=(0, 1, 2), skip_unsupported: bool = False) -> "Scene":
@@ -114,9 +123,7 @@ class Scene:
         nbody = int(system.mjbody_body.shape[0])
         if nbody != m.nbody:
             raise ValueError(f"the System has {nbody} MuJoCo bodies, the model {m.nbody}: not the same model")
-        mj_body = system.mjbody_body.cpu().numpy()
-        mj_pos = system.mjbody_pos.cpu().double().numpy()
-        mj_rot = np.stack([quat_to_mat_np(q) for q in system.mjbody_quat.cpu().double().numpy()])
+        mj_body, mj_pos, mj_rot, mocap_pos, mocap_quat = _mjbody_frames(m, system)
         rows, skipped = [], []
         for g in range(m.ngeom):
             rgba = m.geom_rgba[g].astype(np.float64)
@@ -163,7 +170,8 @@ class Scene:
             mjbody_pos=torch.as_tensor(mj_pos), mjbody_rot=torch.as_tensor(mj_rot),
             mjbody_names=tuple(mujoco.mj_id2name(m, mujoco.mjtObj.mjOBJ_BODY, b) or "" for b in range(m.nbody)),
             skipped=tuple(skipped), unsupported_cameras=refused,
-            geom_mesh=torch.as_tensor(geom_mesh, dtype=torch.long), meshes=meshes)
+            geom_mesh=torch.as_tensor(geom_mesh, dtype=torch.long), meshes=meshes,
+            mocap_pos=torch.as_tensor(mocap_pos), mocap_quat=torch.as_tensor(mocap_quat))
 
     def to(self, device=None, dtype=None) -> "Scene":
         """A copy on ``device`` with floating tensors in ``dtype``."""
@@ -180,6 +188,10 @@ class Scene:
     @property
     def num_geoms(self) -> int:
         return int(self.geom_id.shape[0])
+
+    @property
+    def num_mocap(self) -> int:
+        return int(self.mocap_pos.shape[0])
 
     def camera(self, which) -> Camera:
         """Cameras selected by ``which``: a :class:`Camera` (returned as is), a name or index of a model camera,
@@ -198,6 +210,25 @@ class Scene:
         if not 0 <= int(which) < self.cameras.num:
             raise IndexError(f"camera index {which} out of range: the model has {self.cameras.num} cameras")
         return self.cameras.select([int(which)])
+
+
+def _mjbody_frames(m, system):
+    """Each MuJoCo body's frame index, position and rotation in that frame (``Scene.mjbody_*``), and the mocap
+    bodies' model poses ``(K, 3)``, ``(K, 4)``. The System puts a body riding on a mocap body on the world at the
+    mocap body's model pose (it takes no impulse); here it rides on the mocap frame ``N + 1 + k`` instead, posed
+    relative to the mocap body."""
+    body = system.mjbody_body.cpu().numpy()
+    pos = system.mjbody_pos.cpu().double().numpy()
+    quat = system.mjbody_quat.cpu().double().numpy()
+    rot = np.stack([quat_to_mat_np(q) for q in quat])
+    frame, frame_pos, frame_rot = body.copy(), pos.copy(), rot.copy()
+    for b in range(m.nbody):
+        root = m.body_weldid[b]
+        if m.body_mocapid[root] >= 0:  # both at their model poses in the world: b's relative to its root's
+            frame[b] = system.num_bodies + 1 + m.body_mocapid[root]
+            frame_pos[b], frame_rot[b] = rot[root].T @ (pos[b] - pos[root]), rot[root].T @ rot[b]
+    mocap = sorted((b for b in range(m.nbody) if m.body_mocapid[b] >= 0), key=lambda b: m.body_mocapid[b])
+    return frame, frame_pos, frame_rot, pos[mocap].reshape(-1, 3), quat[mocap].reshape(-1, 4)
 
 
 def bounding_radius(kind: str, size) -> float:

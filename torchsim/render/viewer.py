@@ -10,7 +10,8 @@
 Each geom of the :class:`~torchsim.render.Scene` (plane, sphere, capsule, ellipsoid, cylinder, box, mesh geoms
 with their own triangles, height fields as the scene triangulates them) becomes a mesh in its colour, a child of
 its torchsim body's frame; per update only the bodies' frames move (``State.x_pos`` / ``x_quat``, as
-:func:`torchsim.render.render` reads them). :func:`save_html` records a trajectory into a single HTML file
+:func:`torchsim.render.render` reads them). A mocap body's geoms are children of a frame at its model pose
+(``Scene.mocap_pos``/``mocap_quat``), which updates do not move. :func:`save_html` records a trajectory into a single HTML file
 holding viser's client and the recording (playback bar, orbit camera) that opens in a browser from disk, with
 neither torchsim nor Python installed. ``pip install -e '.[viewer]'`` installs viser; ``scripts/view.py`` opens
 rollouts, trained policies and live training runs.
@@ -134,12 +135,17 @@ class Viewer:
         if eye is not None:
             self.set_camera(eye, (0.0, 0.0, 0.0) if target is None else target, fovy)
         self.bodies = [self.server.scene.add_frame(f"/body{b}", show_axes=False) for b in range(scene.num_bodies)]
+        # mocap bodies' geoms ride on their frames, shown at the model's mocap poses (updates move the bodies only)
+        self.mocap = [self.server.scene.add_frame(f"/mocap{k}", show_axes=False, position=mpos, wxyz=mquat)
+                      for k, (mpos, mquat) in enumerate(zip(scene.mocap_pos.detach().cpu().double().numpy(),
+                                                            scene.mocap_quat.detach().cpu().double().numpy()))]
         rgba = scene.geom_rgba.detach().cpu().double().numpy()
         pos = scene.geom_pos.detach().cpu().double().numpy()
         wxyz = _wxyz(scene.geom_rot.detach().cpu().double().numpy())
         for k, (kind, body) in enumerate(zip(scene.geom_type, scene.geom_body.tolist())):
             vertices, faces = scene_geom_mesh(scene, k, plane_extent)
-            parent = f"/body{body}" if body < scene.num_bodies else "/world"
+            parent = (f"/body{body}" if body < scene.num_bodies else "/world" if body == scene.num_bodies
+                      else f"/mocap{body - scene.num_bodies - 1}")
             colour = tuple(int(c) for c in np.clip(np.round(rgba[k, :3] * 255), 0, 255))
             self.server.scene.add_mesh_simple(
                 f"{parent}/geom{int(scene.geom_id[k])}", vertices, faces, color=colour, position=pos[k],
