@@ -212,12 +212,3 @@ def test_cylinders_side_by_side(method):
     mat = np.zeros(9)
     mujoco.mju_quat2Mat(mat, ts[3:7])
     assert abs(mat[2]) > 1 - 1e-4  # its axis still along x
-
-
-def test_ellipsoid_cylinder_refused():
-    xml = PAIR.format(floor="", geom_a='name="egg" ' + SHAPES["hand"], geom_b='name="drum" ' + SHAPES["cylinder"])
-    mujoco.MjModel.from_xml_string(xml)
-    with pytest.raises(torchsim.UnsupportedMJCFError) as err:
-        torchsim.load_mjcf(xml)
-    msg = str(err.value)
-    assert "egg" in msg and "drum" in msg and "ellipsoid-cylinder" in msg
