@@ -126,3 +126,110 @@ def test_slide_limit_releases_and_holds_as_mujocos(method):
     q, _ = torchsim_run(slider(), 0.0, 0.3, method)
     print(f"{method}: depth under its weight {-q[-50:].mean() * 1e3:.4f} mm (MuJoCo {-mj_q[-50:].mean() * 1e3:.4f})")
     assert abs(q[-50:] - mj_q[-50:].mean()).max() < 0.03 * abs(mj_q[-50:].mean())
+
+
+def camera_on_kicker():
+    """dm_control's boxhead in miniature: a 20 kg head on a damped vertical hinge carries a 1 kg camera on a pitch
+    hinge with range [-0.35, 0] degrees, started on its upper end, and a kick slide (damping 100 N s/m) whose light
+    arms sit 1.5 cm off the slide's line and carry an 18 kg ball on a roll hinge, falling under gravity."""
+    return f"""<mujoco><option timestep="{STEP}"/><worldbody><body pos="0 0 1">
+      <joint type="hinge" axis="0 0 1" damping="4"/>
+      <geom type="box" size="0.2 0.2 0.1" mass="20" contype="0" conaffinity="0"/>
+      <body pos="0 0 0.4">
+        <inertial pos="0 0 0" mass="1" diaginertia="1 1 1"/>
+        <joint type="hinge" axis="0 1 0" range="-0.35 0"/>
+      </body>
+      <body>
+        <joint type="slide" axis="0 0 -1" range="0 0.4" damping="100"/>
+        <geom type="capsule" fromto="0 0.35 -0.7 0.03 0.8 -0.7" size="0.1" density="10" contype="0" conaffinity="0"/>
+        <geom type="capsule" fromto="0 -0.35 -0.7 0.03 -0.8 -0.7" size="0.1" density="10" contype="0" conaffinity="0"/>
+        <body pos="0 0 -0.7">
+          <joint type="hinge" axis="1 0 0" damping="2"/>
+          <geom type="sphere" size="0.35" density="100" contype="0" conaffinity="0"/>
+        </body>
+      </body>
+    </body></worldbody></mujoco>"""
+
+
+def test_hinge_limit_reads_rates_after_a_slide_turned_its_parent():
+    """The camera, sent 0.064 rad/s into its limit, is pushed back out by MuJoCo's limit (1.9 mrad out after 0.3 s)
+    while the kick slide falls. The slide's damping impulse acts at its child's COM, off the slide's line, so its
+    moment turns the head about the pitch axis every substep: a limit solved on the rates before that impulse held
+    the camera ~0.5 mrad inside its limit and was off MuJoCo by 2.8 mrad (148% of MuJoCo's travel). Solved on the
+    rates after it, the pitch follows MuJoCo within 10% of its travel (measured 3.6%; MuJoCo at our 0.5 ms substep
+    differs from its 0.1 ms run by ~1%)."""
+    xml = camera_on_kicker()
+    m = mujoco.MjModel.from_xml_string(xml)
+    m.opt.timestep = MJ_DT
+    d = mujoco.MjData(m)
+    qd0 = np.array([0.0, 0.064, 0.0, 0.0])
+    d.qvel[:] = qd0
+    sys = torchsim.load_mjcf(xml, dtype=F64, substeps=4)
+    state = torchsim.init(sys, torch.zeros(1, 4, dtype=F64), torch.tensor(qd0[None]))
+    pitch, mj_pitch = [], []
+    for _ in range(round(0.3 / STEP)):
+        for _ in range(round(STEP / MJ_DT)):
+            mujoco.mj_step(m, d)
+        state = torchsim.step(sys, state, torch.zeros(1, 0, dtype=F64))
+        pitch.append(state.q[0, 1].item())
+        mj_pitch.append(d.qpos[1])
+    pitch, mj_pitch = np.array(pitch), np.array(mj_pitch)
+    print(f"pitch after 0.3 s {pitch[-1] * 1e3:.4f} mrad (MuJoCo {mj_pitch[-1] * 1e3:.4f}), max error "
+          f"{abs(pitch - mj_pitch).max() * 1e3:.4f} mrad")
+    assert not state.diverged.any()
+    assert mj_pitch[-1] < -1e-3  # MuJoCo pushed the camera out of its limit
+    assert abs(pitch - mj_pitch).max() < 0.1 * abs(mj_pitch).max()
+
+
+def light_link_carrying_a_heavy_one(light_mass):
+    """A 0.3 m link of ``light_mass`` kg on a hinge with range [-30, 30] degrees, carrying a 2 kg 0.3 m link on a
+    free hinge at its tip: from the horizontal, gravity swings both onto the upper side (0.52 rad, the hinge about +y)."""
+    return f"""<mujoco><option timestep="{STEP}"/><worldbody><body pos="0 0 1">
+      <joint type="hinge" axis="0 1 0" range="-30 30"/>
+      <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.02" mass="{light_mass}" contype="0" conaffinity="0"/>
+      <body pos="0.3 0 0">
+        <joint type="hinge" axis="0 1 0"/>
+        <geom type="capsule" fromto="0 0 0 0.3 0 0" size="0.03" mass="2" contype="0" conaffinity="0"/>
+      </body>
+    </body></worldbody></mujoco>"""
+
+
+def rollout_errors(xml, duration):
+    """RMS over ``duration`` and the two angles of torchsim's error (default substeps) and of MuJoCo at ``STEP``,
+    both against MuJoCo at ``STEP / 4`` (``studies/check_third_party.py``'s verdict quantities)."""
+    runs = []
+    for factor in (1, 4):
+        m = mujoco.MjModel.from_xml_string(xml)
+        m.opt.timestep = STEP / factor
+        d = mujoco.MjData(m)
+        q = []
+        for _ in range(round(duration / STEP)):
+            for _ in range(factor):
+                mujoco.mj_step(m, d)
+            q.append(d.qpos.copy())
+        runs.append(np.array(q))
+    sys = torchsim.load_mjcf(xml, dtype=F64)
+    state = torchsim.init(sys, torch.zeros(1, 2, dtype=F64), torch.zeros(1, 2, dtype=F64))
+    q = []
+    for _ in range(round(duration / STEP)):
+        state = torchsim.step(sys, state, torch.zeros(1, 0, dtype=F64))
+        q.append(state.q[0].numpy().copy())
+    rms = lambda a: float(np.sqrt(np.mean((a - runs[1]) ** 2)))  # noqa: E731
+    return rms(np.array(q)), rms(runs[0])
+
+
+@pytest.mark.parametrize("light_mass", [
+    2.0,
+    pytest.param(0.1, marks=pytest.mark.xfail(strict=True, reason=(
+        "the limit's impulse acts on the two bodies of its joint (their inverse inertias, joint_space.limit_rows), "
+        "MuJoCo's on the articulation (M^-1): a light link stopped alone lets its heavy child stretch the joint "
+        "spring between them and bounce back (ratio 13 at 4 substeps, 9.4 at 8, 1.9 at 16, 0.6 at 32); boxhead's "
+        "kick slide and spot_arm's shoulder miss by it"))),
+])
+def test_limit_stops_a_link_carrying_a_heavier_one_as_mujoco(light_mass):
+    """The two links swing down onto the first hinge's limit and the second swings on past it: over 0.5 s torchsim
+    tracks MuJoCo within twice MuJoCo's own timestep sensitivity (the robot models' verdict), measured 0.36x with a
+    2 kg first link."""
+    ts, mj = rollout_errors(light_link_carrying_a_heavy_one(light_mass), 0.5)
+    print(f"{light_mass} kg link: torchsim {ts:.3e} rad, MuJoCo dt vs dt/4 {mj:.3e} rad, ratio {ts / mj:.2f}")
+    assert ts <= 2.0 * mj
