@@ -10,7 +10,9 @@ Each model is checked as it is, and again with ``load_mjcf(max_hull_vertices=64)
 mesh's hull (``torchsim.io_mjcf.hull_caps``), MuJoCo rolling out the capped model too; the other models are the same
 with the option, and their rows are counted again as they are. Counts, verdicts and refusal causes are given both
 ways. ``--capped-load-only``: the capped models are loaded, not rolled out (an eager step of a robot of many
-64-vertex mesh pairs takes seconds to minutes: Fetch's rows took 8 minutes each).
+64-vertex mesh pairs takes seconds to minutes: Fetch's rows took 8 minutes each). ``--load-only``: no model is
+rolled out, for the counts and refusal causes alone (~2 minutes; a full run's soft-contact rollout of dm_control's
+dog_v2 spends over 10 minutes in its first step, which the rollout budget cannot cut).
 
     OMP_NUM_THREADS=1 python studies/check_robot_models.py                  # all, summary and table on stdout
     OMP_NUM_THREADS=1 python studies/check_robot_models.py --write-docs     # and into docs/models.md
@@ -91,6 +93,7 @@ def main():
     parser.add_argument("--match", help="only files whose path inside the package contains this")
     parser.add_argument("--budget", type=float, default=10.0, help="seconds per torchsim rollout before it is cut")
     parser.add_argument("--capped-load-only", action="store_true", help="load the capped models, no rollouts")
+    parser.add_argument("--load-only", action="store_true", help="load every model, no rollouts")
     parser.add_argument("--write-docs", action="store_true", help=f"write the tables into {DOCS.relative_to(ROOT)}")
     args = parser.parse_args()
     torch.set_num_threads(1)
@@ -101,7 +104,7 @@ def main():
     for dist, path, model in found:
         folder = fetch(args.cache, dist, versions[dist]) / PACKAGES[dist][1]
         name = str(path.relative_to(folder).with_suffix(""))
-        row = check(dist, path, args.budget) | dict(model=name, key=(dist, name))
+        row = check(dist, path, args.budget, rollout=not args.load_only) | dict(model=name, key=(dist, name))
         models[row["key"]] = model
         rows.append(row)
         print(progress_line(row), flush=True)
@@ -109,8 +112,9 @@ def main():
     caps = [capped(model) for _, _, model in found]
     for (dist, path, _), row, cap in zip(found, rows, caps):
         if cap:
+            rollout = not (args.capped_load_only or args.load_only)
             row = check(dist, path, args.budget, max_hull_vertices=MAX_HULL_VERTICES,
-                        rollout=not args.capped_load_only) | dict(model=row["model"], key=row["key"])
+                        rollout=rollout) | dict(model=row["model"], key=row["key"])
             print(progress_line(row), flush=True)
         capped_rows.append(row)
     total = time.perf_counter() - t0
