@@ -3,6 +3,8 @@ over pairs, and each equals the brute-force loop it replaced (checked here on sm
 asserted). The soft contacts' pair table, quadratic in a body's contact points by its meaning, is refused beyond
 ``geoms.MAX_SOFT_CONTACT_PAIRS`` by count, before it is built (dm_control's fruit fly would make 14.8 billion)."""
 
+import warnings
+
 import mujoco
 import numpy as np
 import pytest
@@ -125,3 +127,16 @@ def test_soft_pair_tables_are_refused_by_count(monkeypatch):
     assert impulse.num_contacts == soft.num_contacts and impulse.contact_inc_pairs.shape == (0, 2)
     monkeypatch.setattr(geoms, "MAX_SOFT_CONTACT_PAIRS", count)
     assert torchsim.load_mjcf(BODIES_THAT_TOUCH, dtype=F64, contact_model="soft").contact_inc_pairs.shape[0] == count
+
+
+def test_soft_contacts_warn_of_a_large_dense_solve(monkeypatch):
+    """The soft normals are one dense ``C x C`` solve per env and substep: beyond ``SOFT_CONTACT_POINTS_WARN``
+    points the loader says so, with the count and the per-env memory; at the bound it stays quiet."""
+    points = torchsim.load_mjcf(BODIES_THAT_TOUCH, dtype=F64).num_contacts
+    monkeypatch.setattr(geoms, "SOFT_CONTACT_POINTS_WARN", points - 1)
+    with pytest.warns(UserWarning, match=f"{points} contact points as one dense {points} x {points} system"):
+        torchsim.load_mjcf(BODIES_THAT_TOUCH, dtype=F64, contact_model="soft")
+    monkeypatch.setattr(geoms, "SOFT_CONTACT_POINTS_WARN", points)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", UserWarning)
+        torchsim.load_mjcf(BODIES_THAT_TOUCH, dtype=F64, contact_model="soft")

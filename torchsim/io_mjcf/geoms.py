@@ -105,6 +105,12 @@ def geom_fields(m: mujoco.MjModel, fused: FusedBodies, contact_soft: bool) -> di
 #: fruit fly (drosophila_fused, 439374 points on 85 capped mesh hulls) 14.8 billion, 110 GiB of table alone.
 MAX_SOFT_CONTACT_PAIRS = 50_000_000
 
+#: Contact points above which ``contact_model='soft'`` warns of its cost: the normals are solved as one dense ``C x C``
+#: system per env and substep (``soft_contacts.normal_impulses``), ``8 C^2`` bytes and ``~C^3 / 3`` multiply-adds in
+#: float64, and the compiled step unrolls its factorisation over ``C``. dm_control's dog_v2 (thousands of points on
+#: its capped hulls) spent over 10 minutes in one eager step.
+SOFT_CONTACT_POINTS_WARN = 1024
+
 
 def contact_incidence(bodies: np.ndarray, world: int) -> dict:
     """Load-time tables of which contact points act on which moving body, for the soft contacts' coupled solve
@@ -131,6 +137,13 @@ def contact_incidence(bodies: np.ndarray, world: int) -> dict:
             "MAX_SOFT_CONTACT_PAIRS); load it with contact_model='impulse', or exclude geom pairs "
             "(<contact><exclude>, contype/conaffinity) or cap mesh hulls lower (max_hull_vertices) to have fewer "
             "points")
+    if len(bodies) > SOFT_CONTACT_POINTS_WARN:
+        warnings.warn(
+            f"contact_model='soft' solves this model's {len(bodies)} contact points as one dense "
+            f"{len(bodies)} x {len(bodies)} system per env and substep ({8 * len(bodies) ** 2 / 2 ** 20:,.0f} MiB per "
+            f"env in float64, ~{len(bodies) ** 3 / 3e9:,.1f} G multiply-adds): its steps will be slow and its "
+            "compiled step may not build (torchsim.io_mjcf.geoms.SOFT_CONTACT_POINTS_WARN); contact_model='impulse', "
+            "excluded geom pairs or lower max_hull_vertices make fewer")
     body, point, sign, pairs = joint_space.incidence_columns(body, point, sign)
     return dict(contact_inc_point=point, contact_inc_body=body, contact_inc_sign=sign, contact_inc_pairs=pairs)
 
