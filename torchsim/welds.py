@@ -50,9 +50,16 @@ def frames(sys: System, bodies: Bodies):
     """The frames the constraints' sides move with: positions, orientations, linear and angular velocities
     ``(3|4, N + 1 + M, B)``, the ext bodies' (COM, body frame) followed by the mocap bodies' (at rest)."""
     mocap_pos, mocap_quat = mocap_poses(sys, bodies.x_pos.shape[-1])
-    rest = torch.zeros_like(mocap_pos)
     return (torch.cat((bodies.x_pos, mocap_pos), -2), torch.cat((bodies.x_quat, mocap_quat), -2),
-            torch.cat((bodies.xd_vel, rest), -2), torch.cat((bodies.xd_ang, rest), -2))
+            *frame_velocities(sys, bodies))
+
+
+def frame_velocities(sys: System, bodies: Bodies) -> tuple[torch.Tensor, torch.Tensor]:
+    """The linear and angular velocities ``(3, N + 1 + M, B)`` of :func:`frames`: the ext bodies', then the mocap
+    bodies' (at rest)."""
+    vel, ang = bodies.xd_vel, bodies.xd_ang
+    rest = vel.new_zeros(3, sys.mocap_pos.shape[-2], vel.shape[-1])
+    return torch.cat((vel, rest), -2), torch.cat((ang, rest), -2)
 
 
 def mocap_poses(sys: System, batch: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -111,9 +118,8 @@ def _rows(sys: System, bodies: Bodies, inv: rigid.InverseInertia):
 def _rates(sys: System, bodies: Bodies, arm: torch.Tensor, g: torch.Tensor) -> torch.Tensor:
     """The rows' rates ``(6, W, B)`` under the velocities of ``bodies``, at the poses the arms ``(3, 2, W, B)`` and
     the rotation rows' Jacobian ``G`` of :func:`_rows` were taken at (the rates are linear in the velocities)."""
-    index = sys.weld_frame.T.reshape(-1)
-    vel, ang = (torch.cat((x, x.new_zeros(x.shape[:-2] + (sys.mocap_pos.shape[-2], x.shape[-1]))), -2)
-                .index_select(-2, index).unflatten(-2, (2, -1)) for x in (bodies.xd_vel, bodies.xd_ang))  # mocap: at rest
+    vel, ang = (x.index_select(-2, sys.weld_frame.T.reshape(-1)).unflatten(-2, (2, -1))
+                for x in frame_velocities(sys, bodies))  # (3, side, W, B)
     point_vel = vel + spatial.cross(ang, arm)
     return torch.cat((point_vel[:, 0] - point_vel[:, 1], spatial.matvec(g, ang[:, 0] - ang[:, 1])))
 
