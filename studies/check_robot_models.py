@@ -110,11 +110,11 @@ def main():
         print(progress_line(row), flush=True)
     print(f"again with max_hull_vertices={MAX_HULL_VERTICES}, where it caps a hull", flush=True)
     caps = [capped(model) for _, _, model in found]
+    capped_rollout = not (args.capped_load_only or args.load_only)
     for (dist, path, _), row, cap in zip(found, rows, caps):
         if cap:
-            rollout = not (args.capped_load_only or args.load_only)
             row = check(dist, path, args.budget, max_hull_vertices=MAX_HULL_VERTICES,
-                        rollout=rollout) | dict(model=row["model"], key=row["key"])
+                        rollout=capped_rollout) | dict(model=row["model"], key=row["key"])
             print(progress_line(row), flush=True)
         capped_rows.append(row)
     total = time.perf_counter() - t0
