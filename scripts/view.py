@@ -114,7 +114,7 @@ def main():
     print(f"viewing {name}: open {viewer.url}", flush=True)
 
     def show(b, clock=[time.perf_counter()]):  # real time: one env step per dt
-        viewer.update(b.state)
+        viewer.update(b.state, mocap_pos=b.sys.mocap_pos, mocap_quat=b.sys.mocap_quat)  # a task's mocap targets
         time.sleep(max(0.0, clock[0] + b.dt - time.perf_counter()))
         clock[0] = time.perf_counter()
 

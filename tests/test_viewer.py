@@ -124,6 +124,47 @@ def test_viewer_moves_bodies_to_state():
         viewer.close()
 
 
+
+MOCAP_TARGET = """
+<mujoco>
+  <worldbody>
+    <body name="ball" pos="0 0 0"><freejoint/><geom type="sphere" size="0.15" rgba="0 0.8 0 1"/></body>
+    <body name="target" mocap="true" pos="0 0 1"><geom type="box" size="0.1 0.1 0.1" contype="0" conaffinity="0"/></body>
+  </worldbody>
+</mujoco>
+"""
+
+
+def test_viewer_moves_mocap_bodies_to_given_poses():
+    """A mocap body's frame starts at the model's pose and goes where an update puts it: shared ``(K, 3)`` or env
+    ``env``'s row of per-env ``(B, K, 3)`` poses (the System's, as the env's ``set_mocap`` leaves them); an update
+    without them leaves it there; a pose of the wrong shape is refused with the shapes it takes."""
+    pytest.importorskip("viser", reason="viser not installed (pip install viser)")
+    import mujoco
+
+    from torchsim.render.viewer import Viewer
+
+    system = torchsim.load_mjcf(MOCAP_TARGET)
+    scene = Scene.build(mujoco.MjModel.from_xml_string(MOCAP_TARGET), system)
+    state = torchsim.init(system, system.q0[None].repeat(2, 1), torch.zeros(2, system.nv))
+    viewer = Viewer(scene, host="127.0.0.1", port=8791, verbose=False)
+    try:
+        np.testing.assert_allclose(viewer.mocap[0].position, (0.0, 0.0, 1.0), atol=1e-9)
+        turn = (np.cos(0.25), 0.0, 0.0, np.sin(0.25))  # 0.5 rad about z
+        viewer.update(state, mocap_pos=torch.tensor([[0.3, -0.2, 0.5]]), mocap_quat=torch.tensor([turn]))
+        np.testing.assert_allclose(viewer.mocap[0].position, (0.3, -0.2, 0.5), atol=1e-9)
+        np.testing.assert_allclose(viewer.mocap[0].wxyz, turn, atol=1e-9)
+        per_env = torch.tensor([[[0.3, -0.2, 0.5]], [[-0.4, 0.1, 0.7]]])
+        viewer.update(state, env=1, mocap_pos=per_env)
+        np.testing.assert_allclose(viewer.mocap[0].position, (-0.4, 0.1, 0.7), atol=1e-9)
+        np.testing.assert_allclose(viewer.mocap[0].wxyz, turn, atol=1e-9)  # quaternion left out: kept
+        viewer.update(state)
+        np.testing.assert_allclose(viewer.mocap[0].position, (-0.4, 0.1, 0.7), atol=1e-9)
+        with pytest.raises(ValueError, match=r"mocap_pos must be \(1, 3\) or \(B, 1, 3\)"):
+            viewer.update(state, mocap_pos=torch.zeros(2, 3))
+    finally:
+        viewer.close()
+
 def _chromium():
     for name in ("chromium", "chromium-browser", "google-chrome"):
         if shutil.which(name):

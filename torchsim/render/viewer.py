@@ -11,7 +11,7 @@ Each geom of the :class:`~torchsim.render.Scene` (plane, sphere, capsule, ellips
 with their own triangles, height fields as the scene triangulates them) becomes a mesh in its colour, a child of
 its torchsim body's frame; per update only the bodies' frames move (``State.x_pos`` / ``x_quat``, as
 :func:`torchsim.render.render` reads them). A mocap body's geoms are children of a frame at its model pose
-(``Scene.mocap_pos``/``mocap_quat``), which updates do not move. :func:`save_html` records a trajectory into a single HTML file
+(``Scene.mocap_pos``/``mocap_quat``) until an update gives their poses. :func:`save_html` records a trajectory into a single HTML file
 holding viser's client and the recording (playback bar, orbit camera) that opens in a browser from disk, with
 neither torchsim nor Python installed. ``pip install -e '.[viewer]'`` installs viser; ``scripts/view.py`` opens
 rollouts, trained policies and live training runs.
@@ -93,6 +93,16 @@ def _wxyz(rot: np.ndarray) -> np.ndarray:
     return np.stack([SO3.from_matrix(r).wxyz for r in rot.reshape(-1, 3, 3)]).reshape(*rot.shape[:-2], 4)
 
 
+def _frame(value, env: int, count: int, width: int, label: str) -> np.ndarray:
+    """Env ``env``'s ``(count, width)`` rows of ``value``, given shared ``(count, width)`` or per env
+    ``(B, count, width)``."""
+    value = torch.as_tensor(value).detach().cpu().double()
+    if value.shape[-2:] != (count, width) or value.ndim not in (2, 3):
+        raise ValueError(f"{label} must be ({count}, {width}) or (B, {count}, {width}) for this scene's {count} mocap "
+                         f"bodies, got {tuple(value.shape)}")
+    return (value if value.ndim == 2 else value[env]).numpy()
+
+
 def body_poses(poses, env: int = 0) -> tuple[np.ndarray, np.ndarray]:
     """Body positions ``(T, N, 3)`` and quaternions ``(T, N, 4)`` (float64 numpy) from a ``torchsim.State`` (its
     env ``env``: one frame), or from ``(x_pos, x_quat)`` of shapes ``(T, N, 3)``, ``(T, N, 4)`` (a trajectory)
@@ -135,7 +145,7 @@ class Viewer:
         if eye is not None:
             self.set_camera(eye, (0.0, 0.0, 0.0) if target is None else target, fovy)
         self.bodies = [self.server.scene.add_frame(f"/body{b}", show_axes=False) for b in range(scene.num_bodies)]
-        # mocap bodies' geoms ride on their frames, shown at the model's mocap poses (updates move the bodies only)
+        # mocap bodies' geoms ride on their frames, at the model's mocap poses until an update gives theirs
         self.mocap = [self.server.scene.add_frame(f"/mocap{k}", show_axes=False, position=mpos, wxyz=mquat)
                       for k, (mpos, mquat) in enumerate(zip(scene.mocap_pos.detach().cpu().double().numpy(),
                                                             scene.mocap_quat.detach().cpu().double().numpy()))]
@@ -178,13 +188,22 @@ class Viewer:
             eye = centre + distance * np.array([0.0, -np.cos(el), np.sin(el)])
         self.set_camera(eye, centre, fovy)
 
-    def update(self, poses, env: int = 0) -> None:
+    def update(self, poses, env: int = 0, mocap_pos=None, mocap_quat=None) -> None:
         """Move the bodies to ``poses``: a ``torchsim.State`` (env ``env`` is shown) or ``(x_pos, x_quat)`` of one
-        frame ``(N, 3)``, ``(N, 4)``."""
+        frame ``(N, 3)``, ``(N, 4)``; and the mocap bodies to ``mocap_pos (K, 3)``, ``mocap_quat (K, 4)``, shared,
+        or ``(B, K, 3)``, ``(B, K, 4)`` per env (the System's, which the step reads: ``env.sys.mocap_pos``); one
+        left out keeps the mocap bodies' last poses."""
         x_pos, x_quat = body_poses(poses, env)
+        mocap = [None if value is None else _frame(value, env, len(self.mocap), width, label)
+                 for value, width, label in ((mocap_pos, 3, "mocap_pos"), (mocap_quat, 4, "mocap_quat"))]
         with self.server.atomic():
             for b, handle in enumerate(self.bodies):
                 handle.position, handle.wxyz = x_pos[0, b], x_quat[0, b]
+            for k, handle in enumerate(self.mocap):
+                if mocap[0] is not None:
+                    handle.position = mocap[0][k]
+                if mocap[1] is not None:
+                    handle.wxyz = mocap[1][k] / np.linalg.norm(mocap[1][k])
 
     def play(self, poses, dt: float, loop: bool = False) -> None:
         """Show a trajectory ``(x_pos (T, N, 3), x_quat (T, N, 4))`` in real time (``dt`` seconds per frame)."""
