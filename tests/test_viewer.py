@@ -124,7 +124,6 @@ def test_viewer_moves_bodies_to_state():
         viewer.close()
 
 
-
 MOCAP_TARGET = """
 <mujoco>
   <worldbody>
@@ -164,6 +163,7 @@ def test_viewer_moves_mocap_bodies_to_given_poses():
             viewer.update(state, mocap_pos=torch.zeros(2, 3))
     finally:
         viewer.close()
+
 
 def _chromium():
     for name in ("chromium", "chromium-browser", "google-chrome"):

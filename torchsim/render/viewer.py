@@ -194,16 +194,19 @@ class Viewer:
         or ``(B, K, 3)``, ``(B, K, 4)`` per env (the System's, which the step reads: ``env.sys.mocap_pos``); one
         left out keeps the mocap bodies' last poses."""
         x_pos, x_quat = body_poses(poses, env)
-        mocap = [None if value is None else _frame(value, env, len(self.mocap), width, label)
-                 for value, width, label in ((mocap_pos, 3, "mocap_pos"), (mocap_quat, 4, "mocap_quat"))]
+        if mocap_pos is not None:
+            mocap_pos = _frame(mocap_pos, env, len(self.mocap), 3, "mocap_pos")
+        if mocap_quat is not None:
+            mocap_quat = _frame(mocap_quat, env, len(self.mocap), 4, "mocap_quat")
+            mocap_quat = mocap_quat / np.linalg.norm(mocap_quat, axis=-1, keepdims=True)
         with self.server.atomic():
             for b, handle in enumerate(self.bodies):
                 handle.position, handle.wxyz = x_pos[0, b], x_quat[0, b]
             for k, handle in enumerate(self.mocap):
-                if mocap[0] is not None:
-                    handle.position = mocap[0][k]
-                if mocap[1] is not None:
-                    handle.wxyz = mocap[1][k] / np.linalg.norm(mocap[1][k])
+                if mocap_pos is not None:
+                    handle.position = mocap_pos[k]
+                if mocap_quat is not None:
+                    handle.wxyz = mocap_quat[k]
 
     def play(self, poses, dt: float, loop: bool = False) -> None:
         """Show a trajectory ``(x_pos (T, N, 3), x_quat (T, N, 4))`` in real time (``dt`` seconds per frame)."""
