@@ -19,8 +19,9 @@ quaternions up to sign): ``ts``: torchsim vs MuJoCo dt/4; ``mj``: MuJoCo dt vs M
 sensitivity). Verdict: PASS if ts <= max(k * mj, 1e-3), k = 2 where MuJoCo's rollout had no contact, k = 5 where it
 had any (``d.ncon > 0`` at some step); a diverged torchsim rollout is a MISS. A torchsim rollout that exceeds
 ``--budget`` seconds is cut there and compared over the steps it ran (the steps column says so). A model with contacts
-is rolled out again on ``contact_model="soft"``, except beyond the loader's dense-solve warning
-(``geoms.SOFT_CONTACT_POINTS_WARN`` contact points: SKIP), where a single step can outlast any budget.
+is rolled out again on each of ``AGAIN``'s contact models (``contact_model="soft"``, ``"articulated"``), except beyond
+the loader's dense-solve warning (``geoms.SOFT_CONTACT_POINTS_WARN`` contact points: SKIP), where a single step can
+outlast any budget.
 
     OMP_NUM_THREADS=1 python studies/check_third_party.py                 # all models, table on stdout
     OMP_NUM_THREADS=1 python studies/check_third_party.py --write-docs    # and into docs/models.md
@@ -58,6 +59,7 @@ PACKAGES = {
 }
 TEMPLATES = {("dm_control", "lqr"), ("dm_control", "swimmer")}  # extended in code by their tasks
 HORIZON, VEL_STD, SEED = 0.5, 0.1, 0
+AGAIN = ("soft", "articulated")  # the contact models a model with contacts is rolled out again on
 F64 = torch.float64
 
 
@@ -151,7 +153,7 @@ def check(source: str, path: Path, budget: float, max_hull_vertices: int | None 
     ``rollout``: whether a loaded model is rolled out (or only loaded)."""
     t0 = time.perf_counter()
     row = dict(source=source, model=path.stem, status="", nq="-", contact="-", steps="-", ts=np.nan, mj=np.nan,
-               soft=np.nan, verdict="", soft_verdict="", detail="")
+               verdict="", again={}, detail="")
 
     def mujoco_model():
         with warnings.catch_warnings():  # the loader's warning names the meshes capped (in the row's detail)
@@ -187,23 +189,21 @@ def check(source: str, path: Path, budget: float, max_hull_vertices: int | None 
                         ts=q_error(m, ours, fine[:n]), mj=q_error(m, ref[:n], fine[:n]))
             tol = max((5.0 if row["contact"] == "yes" else 2.0) * row["mj"], 1e-3)
             row["verdict"] = "MISS" if diverged or not row["ts"] <= tol else "PASS"
-            soft_status, soft_sys, soft_detail = "", None, ""
-            if row["contact"] == "yes":  # the same with MuJoCo's soft contacts (load_mjcf(contact_model="soft"))
-                soft_status, soft_sys, soft_detail = load(path, contact_model="soft", **options)
-            if soft_sys is not None and soft_sys.num_contacts > SOFT_CONTACT_POINTS_WARN:
-                # the budget is checked between steps, and one step of a dense solve this size may take minutes
-                soft_status, soft_detail = "SKIP", (f"{soft_sys.num_contacts} contact points, over the "
-                                                    f"{SOFT_CONTACT_POINTS_WARN} of the loader's dense-solve warning")
-                row["soft_verdict"] = soft_status
-            elif soft_sys is not None:
-                soft, soft_diverged = torchsim_rollout(soft_sys, m, qd0, steps, budget)
-                row["soft"] = q_error(m, soft, fine[:len(soft)])
-                row["soft_verdict"] = "MISS" if soft_diverged or not row["soft"] <= tol else "PASS"
-            elif soft_status:  # the soft contacts' load refused or crashed where the impulse one loaded
-                row["soft_verdict"] = soft_status
-            row["detail"] = "; ".join(filter(None, ["torchsim diverged" if diverged else "",
-                                                    f"soft: {soft_detail}" if soft_status not in ("", "LOAD") else "",
-                                                    row["detail"]]))
+            notes = ["torchsim diverged" if diverged else ""]
+            for contact_model in AGAIN if row["contact"] == "yes" else ():
+                status, again_sys, detail = load(path, contact_model=contact_model, **options)
+                if again_sys is not None and again_sys.num_contacts > SOFT_CONTACT_POINTS_WARN:
+                    # the budget is checked between steps, and one step of a dense solve this size may take minutes
+                    status, detail = "SKIP", (f"{again_sys.num_contacts} contact points, over the "
+                                              f"{SOFT_CONTACT_POINTS_WARN} of the loader's dense-solve warning")
+                if status != "LOAD":  # refused, crashed or skipped where the impulse contacts loaded
+                    row["again"][contact_model] = (np.nan, status)
+                    notes.append(f"{contact_model}: {detail}")
+                    continue
+                again, again_diverged = torchsim_rollout(again_sys, m, qd0, steps, budget)
+                error = q_error(m, again, fine[:len(again)])
+                row["again"][contact_model] = (error, "MISS" if again_diverged or not error <= tol else "PASS")
+            row["detail"] = "; ".join(filter(None, notes + [row["detail"]]))
     if (source, path.stem) in TEMPLATES:
         row["detail"] = "; ".join(filter(None, ["template: the task builds its model from it in code", row["detail"]]))
     return row | dict(time=time.perf_counter() - t0)
@@ -212,7 +212,8 @@ def check(source: str, path: Path, budget: float, max_hull_vertices: int | None 
 def progress_line(r: dict) -> str:
     """A checked model's row as one console line."""
     return (f"{r['source']:18s} {r['model'][:50]:50s} {r['status']:8s} {r['verdict']:4s} ts {fmt(r['ts'])} "
-            f"mj {fmt(r['mj'])} soft {fmt(r['soft'])} {r['soft_verdict']:4s} {r['time']:6.1f} s  {r['detail'][:90]}")
+            f"mj {fmt(r['mj'])} " + " ".join(f"{c} {fmt(e)} {v:4s}" for c, (e, v) in r["again"].items())
+            + f" {r['time']:6.1f} s  {r['detail'][:90]}")
 
 
 def provenance(script: str, versions: dict, total: float) -> str:
@@ -228,8 +229,9 @@ def fmt(x: float) -> str:
 
 
 def table(rows: list[dict]) -> str:
+    again = "".join(f"| {c}: ratio | {c}: verdict " for c in AGAIN)
     lines = ["| source | model | nq | status | contact | steps | ts vs mj dt/4 | mj dt vs dt/4 | ratio | verdict "
-             "| soft: ts vs mj dt/4 | soft: ratio | soft: verdict | time [s] | detail |", "|" + "---|" * 15]
+             f"{again}| time [s] | detail |", "|" + "---|" * (12 + 2 * len(AGAIN))]
 
     def ratio(x, r):
         return "-" if np.isnan(x) or not r["mj"] > 0 else f"{x / r['mj']:.3g}"
@@ -238,21 +240,23 @@ def table(rows: list[dict]) -> str:
         detail = r["detail"].replace("|", "/").split("; see torchsim")[0]
         lines.append(f"| {r['source']} | {r['model']} | {r['nq']} | {r['status']} | {r['contact']} | {r['steps']} "
                      f"| {fmt(r['ts'])} | {fmt(r['mj'])} | {ratio(r['ts'], r)} | {r['verdict'] or '-'} "
-                     f"| {fmt(r['soft'])} | {ratio(r['soft'], r)} | {r['soft_verdict'] or '-'} "
-                     f"| {r['time']:.1f} | {f'`{detail}`' if detail else ''} |")
+                     + "".join(f"| {ratio(e, r)} | {v} " for e, v in (r["again"].get(c, (np.nan, "-")) for c in AGAIN))
+                     + f"| {r['time']:.1f} | {f'`{detail}`' if detail else ''} |")
     return "\n".join(lines)
 
 
 def summary(rows: list[dict]) -> str:
     status = collections.Counter(r["status"] for r in rows)
     verdict = collections.Counter(r["verdict"] for r in rows if r["verdict"])
-    soft = collections.Counter(r["soft_verdict"] for r in rows if r["soft_verdict"])
+
     names_and_counts = r"'[^']*'|\(\d+ found\)|#\d+|(?<=has )\d+(?= vertices)"  # what differs between models
     causes = collections.Counter(re.sub(names_and_counts, "…", r["detail"]).split("; ")[0]
                                  for r in rows if r["status"] == "REFUSE")
     out = [f"{len(rows)} models: " + ", ".join(f"{k} {v}" for k, v in sorted(status.items())) + "; rolled out: "
-           + (", ".join(f"{k} {v}" for k, v in sorted(verdict.items())) or "none") + "; with contacts, under "
-           "`contact_model=\"soft\"`: " + (", ".join(f"{k} {v}" for k, v in sorted(soft.items())) or "none") + "."]
+           + (", ".join(f"{k} {v}" for k, v in sorted(verdict.items())) or "none")
+           + "".join(f"; with contacts, under `contact_model=\"{c}\"`: " + (", ".join(
+               f"{k} {v}" for k, v in sorted(collections.Counter(
+                   r["again"][c][1] for r in rows if c in r["again"]).items())) or "none") for c in AGAIN) + "."]
     out += ["", "Refusal causes:"] + [f"- {n} x `{c}`" for c, n in causes.most_common()]
     crashes = [f"- {r['source']}/{r['model']}: `{r['detail']}`" for r in rows if r["status"] == "CRASH"]
     return "\n".join(out + (["", "Crashes (engine bugs):"] + crashes if crashes else []))
@@ -283,8 +287,9 @@ def main():
         provenance("check_third_party.py", versions, total) + " Rule, rollout and verdict: the script's docstring. "
         "`ts`: torchsim vs MuJoCo at dt/4; `mj`: MuJoCo dt vs dt/4; RMS of qpos over 0.5 s from qpos0 with "
         "N(0, 0.1) start velocities, zero controls; PASS: ts <= max(2 mj, 1e-3) without contact, max(5 mj, 1e-3) "
-        "with contact. `soft`: the same torchsim rollout with `load_mjcf(contact_model=\"soft\")` (MuJoCo's soft "
-        "contact normal, `torchsim/soft_contacts.py`), for the models with contact. dm_control's lqr.xml and "
+        "with contact. `soft`, `articulated`: the same torchsim rollout with `load_mjcf(contact_model=...)` "
+        "(MuJoCo's soft contact normal, `torchsim/soft_contacts.py`; solved through the articulation, "
+        "`torchsim/articulated_contacts.py`), for the models with contact. dm_control's lqr.xml and "
         "swimmer.xml are templates (see the docstring).",
         summary(rows), table(rows)])
     print("\n" + text)

@@ -35,7 +35,7 @@ import torchsim
 from torchsim import spatial
 from torchsim.execution.kernel import emit_cuda
 from torchsim.execution.kernel.step import StepKernel
-from models import SHIPPED, load_model, random_q
+from models import REPO, SHIPPED, load_model, random_q
 
 BACKEND = os.environ.get("TORCHSIM_TEST_BACKEND", "eager")
 ALL_MODELS = bool(os.environ.get("TORCHSIM_TEST_ALL_MODELS"))
@@ -49,7 +49,7 @@ PARAMS = [pytest.param(path, method, strategy, id=f"{path.stem}-{method}-{strate
 STEPS = 20
 
 
-def _start(path, method: str, batch: int):
+def _start(path, method: str, batch: int, contact_model: str = "impulse"):
     """The model in float64; ``batch`` starts with hinges within 0.1 rad of their initial angle and slides up to 5 cm
     above their initial value (in their range), ball joints and free bodies in a random orientation, free bodies
     0.1 m above their initial position (so bodies fall, tumble and land: contacts act within the 20 steps), random
@@ -59,7 +59,7 @@ def _start(path, method: str, batch: int):
     model (the env ships xpbd: ``envs/targets.py``) diverges within 20 steps. The engine then freezes the env at its
     last good state, so a strategy must flag the same envs and agree on the steps before."""
     xml, m = load_model(path)
-    sys = torchsim.load_mjcf(xml, method=method, dtype=torch.float64)
+    sys = torchsim.load_mjcf(xml, method=method, dtype=torch.float64, contact_model=contact_model)
     rng = np.random.default_rng(0)
     q = random_q(m, batch, rng)  # orientations
     free, hinge, slide = (int(k) for k in (mujoco.mjtJoint.mjJNT_FREE, mujoco.mjtJoint.mjJNT_HINGE,
@@ -156,4 +156,17 @@ def test_gpu_kernel_agrees_with_reference(path, monkeypatch, tmp_path):
     kernel = StepKernel(sys, emitter=emit_cuda)
     assert "__global__ void step(" in next((tmp_path / "cuda").glob("*.cu")).read_text()
     _check_against_reference(f"{path.stem} cuda (host build)", sys, lambda state, ctrl: kernel(sys, state, ctrl),
+                             start, ctrl, 2, min_move=1e-3)
+
+
+@pytest.mark.xdist_group("ant-articulated")
+def test_articulated_contacts_agree_on_both_kernels(monkeypatch, tmp_path):
+    """The Ant on ``contact_model="articulated"`` (its free root's and hinges' columns, the tree's solves and the
+    dense contact solve) through the C++ kernel and the CUDA kernel's host build, by the bound above."""
+    monkeypatch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path))
+    sys, start, ctrl = _start(REPO / "envs" / "assets" / "ant.xml", "spring", 2, "articulated")
+    _check_against_reference("ant articulated kernel", sys, torchsim.Stepper(sys, "kernel", threads=2), start, ctrl,
+                             2, min_move=1e-3)
+    kernel = StepKernel(sys, emitter=emit_cuda)
+    _check_against_reference("ant articulated cuda (host build)", sys, lambda state, ctrl: kernel(sys, state, ctrl),
                              start, ctrl, 2, min_move=1e-3)

@@ -22,8 +22,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from torchsim import lanes, spatial, rigid
-from torchsim.kinematics import Bodies, JointFrames, dof_hinge_rows, dof_values
+from torchsim import articulation, lanes, spatial, rigid
+from torchsim.kinematics import Bodies, JointFrames, dof_hinge_rows, dof_values, joint_frames
 from torchsim.system import System
 from torchsim.tendons import impedance
 
@@ -250,6 +250,17 @@ def armature_impulse(sys: System, inv: rigid.InverseInertia, axes: torch.Tensor,
     return -armature * deviation / (1.0 + armature * w)
 
 
+def hinge_friction_limits(sys: System, h: float) -> torch.Tensor | None:
+    """The largest dry-friction impulses ``h frictionloss (F + G, 1 | B)`` [N m s | N s] of the frictional hinges
+    then the frictional tendons (:func:`hinge_rate_solve`'s ``friction_h``), None where the model has none."""
+    if not (sys.dof_friction_hinges.shape[0] or sys.ten_friction.shape[0]):
+        return None
+    rows = (lanes.param(sys.dof_frictionloss, 1).index_select(0, sys.dof_friction_hinges),
+            lanes.param(sys.ten_frictionloss, 1).index_select(0, sys.ten_friction))
+    batch = max(r.shape[-1] for r in rows)  # dof_frictionloss may be per env
+    return h * torch.cat([r.expand(-1, batch) for r in rows])
+
+
 def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,
                         h: float, q: torch.Tensor | None = None):
     """Armature, implicit damping, dry friction and (given the dof coordinates ``q (D, B)`` at the substep start,
@@ -258,12 +269,7 @@ def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: Join
     its projection instead, where the joints hold: an impulse here turns a link about its COM, and the projection
     would keep only ``I_com / I_pivot`` of it.)"""
     qd = dof_values(sys, frames.qd)
-    friction_h = None
-    if sys.dof_friction_hinges.shape[0] or sys.ten_friction.shape[0]:
-        rows = (lanes.param(sys.dof_frictionloss, 1).index_select(0, sys.dof_friction_hinges),
-                lanes.param(sys.ten_frictionloss, 1).index_select(0, sys.ten_friction))
-        batch = max(r.shape[-1] for r in rows)  # dof_frictionloss may be per env
-        friction_h = h * torch.cat([r.expand(-1, batch) for r in rows])
+    friction_h = hinge_friction_limits(sys, h)
     limits = None
     if sys.dof_limits and q is not None:
         limits = limit_rows(sys, q, qd, h)
@@ -283,6 +289,43 @@ def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: Join
     if sys.root_passive:
         after = root_rate_solve(sys, before, after, frames, inv, h)
     return after, rates
+
+
+def articulated_rate_solve(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,
+                           h: float, q: torch.Tensor | None = None):
+    """:func:`inertia_and_damping` (same arguments and returns; ``sys`` with the tree's tables,
+    ``articulation.with_tree``) with every hinge and slide impulse meeting the rigid articulation
+    (:mod:`torchsim.articulation`) instead of the dof's two bodies: ``A`` is the dofs' block of ``M^-1`` at the
+    substep's start and the bodies move by ``J M^-1 mu``, so a limit stopping a light link stops the heavy link it
+    carries with it, as MuJoCo's constraint solve does. Dense in the tree's dofs (``C^2 N`` products to build
+    ``M``, one ``C x C`` solve per env); slides join the hinges' solve, so a frictional slide is refused."""
+    if sys.dof_friction_slides:
+        raise ValueError("articulated_rate_solve: dry friction on slide dofs is not supported")
+    model = articulation.articulation(sys, before, frames, inv.rot)
+    n_dof, batch = sys.dof_flat.shape[0], before.x_pos.shape[-1]
+    unit = torch.eye(model.inertia.shape[0], n_dof, dtype=model.inertia.dtype, device=model.inertia.device)
+    mobility = spatial.spd_solve(model.inertia, unit[:, :, None].expand(-1, -1, batch))  # (C, D, B): M^-1's dof columns
+    a = mobility[:n_dof]
+    a_flat = a.reshape(n_dof * n_dof, batch)
+    qd = dof_values(sys, frames.qd)
+    # the dofs' rates after the substep's forces, measured at its start's poses
+    qd_raw = dof_values(sys, joint_frames(sys, after._replace(x_pos=before.x_pos, x_quat=before.x_quat),
+                                          rot=inv.rot).qd)
+    armature = lanes.param(sys.dof_armature, 1).expand(n_dof, batch)
+    inertia = armature + h * lanes.param(sys.dof_damping, 1)
+    mat, rhs = _dof_system(a_flat, inertia, armature * qd, qd_raw)
+    if sys.dof_limits and q is not None:
+        mat, rhs = _limit_system(a_flat, a, inertia, armature * qd, qd_raw, spatial.spd_solve(mat, rhs),
+                                 limit_rows(sys, q, qd, h))
+    friction_h = hinge_friction_limits(sys, h)
+    mu = spatial.spd_solve(mat, rhs) if friction_h is None else _hinge_friction(sys, mat, a, rhs, qd_raw, friction_h)
+    rate_change = (mobility * mu).sum(1)  # (C, B)
+    world = after.xd_vel.new_zeros(3, 1, batch)
+    after = after._replace(xd_vel=after.xd_vel + torch.cat(((model.vel * rate_change[:, None]).sum(1), world), 1),
+                           xd_ang=after.xd_ang + torch.cat(((model.ang * rate_change[:, None]).sum(1), world), 1))
+    if sys.root_passive:
+        after = root_rate_solve(sys, before, after, frames, inv, h)
+    return after, qd_raw + spatial.matvec(a, mu)
 
 
 def root_rate_solve(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,

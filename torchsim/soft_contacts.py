@@ -47,11 +47,12 @@ def delassus(sys: System, bodies: Bodies, inv: rigid.InverseInertia, con: Contac
     return flat.index_add(0, point[first] * num_points + point[second], blocks).view(num_points, num_points, batch)
 
 
-def normal_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, con: Contacts, v_n: torch.Tensor,
+def normal_impulses(sys: System, con: Contacts, inverse_inertia: torch.Tensor, v_n: torch.Tensor,
                     v_n_start: torch.Tensor, h: float) -> torch.Tensor:
     """Each point's normal impulse ``(C, B)`` (>= 0, 0 where inactive) for normal speeds ``v_n`` after the other
-    forces and ``v_n_start`` at the substep's start ``(C, B)``, over a substep ``h``; ``inv`` the bodies' inverse
-    inertias (armature-loaded: ``joint_space.armature_loaded_inertia``)."""
+    forces and ``v_n_start`` at the substep's start ``(C, B)``, over a substep ``h``; ``inverse_inertia (C, C, B)``
+    the normals' ``A``: through the bodies (:func:`delassus`, from armature-loaded inertias,
+    ``joint_space.armature_loaded_inertia``) or through the articulation (``torchsim.articulated_contacts``)."""
     k, b = lanes.param(sys.contact_gains, 2).unbind(-2)
     imp = impedance(sys.contact_solimp, con.depth, sys.contact_solimp_square)
     target = v_n_start + h * (k * imp * con.depth - b * v_n_start)
@@ -63,7 +64,7 @@ def normal_impulses(sys: System, bodies: Bodies, inv: rigid.InverseInertia, con:
     num_points = active.shape[0]
     # inactive points get an identity row and a zero right-hand side: impulse 0, no coupling
     both = (active.unsqueeze(1) & active.unsqueeze(0)).flatten(0, 1)
-    flat = torch.where(both, delassus(sys, bodies, inv, con).flatten(0, 1), 0.0)
+    flat = torch.where(both, inverse_inertia.flatten(0, 1), 0.0)
     diagonal = torch.arange(num_points, device=active.device) * (num_points + 1)
     mat = flat.index_add(0, diagonal, torch.where(active, reg, 1.0)).view(num_points, num_points, -1)
     impulse = spatial.spd_solve(mat, torch.where(active, target - v_n, 0.0))

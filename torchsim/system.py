@@ -228,7 +228,8 @@ class System:
         (x, y half extents, elevation scale, base) [m].  hfield_windows: ``(kind, Wy, Wx)`` for each ``*_hfield``
         pair kind, the cells tested around a geom (static; ``torchsim.collision_hfield``).
         contact_soft: whether contacts are MuJoCo's soft constraint (``load_mjcf(contact_model="soft")``, the
-        spring method; static).  Per contact point ``C`` (the order of ``collision.contacts``):
+        spring method; static).  contact_articulated: whether they are, solved through the articulation
+        (``contact_model="articulated"``, ``torchsim.articulated_contacts``; static).  Per contact point ``C`` (the order of ``collision.contacts``):
         contact_gains: (C, 2) ``K`` [1/s^2], ``B`` [1/s] from the pair's ``solref``.  contact_solimp: (C, 5).
         contact_invweight: (C,) MuJoCo's approximate inverse mass of the contact normal at ``qpos0`` (its two
         bodies' translational ``body_invweight0``) [1/kg].  contact_solimp_square: every contact's ``solimp``
@@ -262,6 +263,10 @@ class System:
         (force and torque sensors subtract them from the subtree's inertial wrench).
     MuJoCo bodies (for poses of fused bodies, e.g. rendering): mjbody_body (nbody,) ext index;
         mjbody_pos, mjbody_quat: frame offset of each MuJoCo body in its fused body's frame.
+    The kinematic tree (``torchsim.articulation``; ``C`` columns: the hinge and slide dofs, 3 per ball joint, 6 per
+        free body), empty (no columns) unless ``contact_articulated`` or :func:`torchsim.articulation.with_tree`:
+        tree_moves: (C, N) 1 where a column moves a body, else 0.  tree_lin, tree_ang: (3, C) the ball joints' and
+        free bodies' unit columns (zero for hinges and slides).
     """
 
     # sizes and options
@@ -449,6 +454,7 @@ class System:
     hfield_windows: tuple
     contact_groups: tuple
     contact_soft: bool
+    contact_articulated: bool
     contact_mocap: bool
     contact_gains: torch.Tensor
     contact_solimp: torch.Tensor
@@ -492,6 +498,10 @@ class System:
     mjbody_body: torch.Tensor
     mjbody_pos: torch.Tensor
     mjbody_quat: torch.Tensor
+    # the kinematic tree (torchsim.articulation)
+    tree_moves: torch.Tensor
+    tree_lin: torch.Tensor
+    tree_ang: torch.Tensor
 
     @property
     def substep_timestep(self) -> float:

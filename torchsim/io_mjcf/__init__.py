@@ -59,6 +59,7 @@ import mujoco
 import numpy as np
 import torch
 
+from torchsim import articulation
 from torchsim.io_mjcf.actuators import actuator_fields
 from torchsim.io_mjcf.bodies import fuse_bodies
 from torchsim.io_mjcf.equality import equality_fields, weld_fields
@@ -76,6 +77,7 @@ from torchsim.system import System
 __all__ = ["JOINT_DAMPING", "JOINT_STIFFNESS", "UnsupportedMJCFError", "load_mjcf", "mujoco_model"]
 
 JOINT_STIFFNESS, JOINT_DAMPING = 0.2, 0.5  # load_mjcf's defaults (spring method)
+CONTACT_MODELS = ("impulse", "soft", "articulated")
 
 
 def load_mjcf(
@@ -120,7 +122,10 @@ def load_mjcf(
             landing body within a substep. ``"soft"``: MuJoCo's soft contact on the normal, with each pair's
             ``solref``, ``solimp`` and ``margin`` (``contact_timeconst`` unused): a body sinks in and is pushed
             back along MuJoCo's spring-damper, and rests as deep as in MuJoCo (``torchsim.soft_contacts``).
-            Friction stays a Coulomb-capped impulse in both.
+            ``"articulated"``: the soft contact solved through the articulation's joint-space inertia, as MuJoCo
+            solves it: an impulse on a foot moves the leg and the torso above it as if the joints were rigid
+            (``torchsim.articulated_contacts``; dense in the tree's dofs and the contact points). Friction stays a
+            Coulomb-capped impulse in all three.
         xpbd_iterations: XPBD only: projection passes (contacts, then joint colours) per substep.
         max_speed, max_distance: an env whose body speed [m/s] or distance from the origin [m] exceeds these is
             flagged as diverged.
@@ -131,10 +136,10 @@ def load_mjcf(
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {tuple(METHODS)}")
-    if contact_model not in ("impulse", "soft"):
-        raise ValueError(f"unknown contact_model {contact_model!r}; expected 'impulse' or 'soft'")
-    if contact_model == "soft" and method != "spring":
-        raise ValueError(f"contact_model='soft' is implemented for the spring method only, not {method!r}")
+    if contact_model not in CONTACT_MODELS:
+        raise ValueError(f"unknown contact_model {contact_model!r}; expected one of {CONTACT_MODELS}")
+    if contact_model != "impulse" and method != "spring":
+        raise ValueError(f"contact_model={contact_model!r} is implemented for the spring method only, not {method!r}")
     m = mujoco_model(source, max_hull_vertices)
     check_supported(m)
     free_substeps = substeps is None
@@ -144,6 +149,7 @@ def load_mjcf(
     fused, fields = fuse_bodies(m)
     joints, jnt_dof = joint_fields(m, fused)
     fields |= joints | actuator_fields(m, jnt_dof, fused) | geom_fields(m, fused, contact_soft=contact_model == "soft")
+    fields |= articulation.no_tree(len(fields["body_ipos"]))
     fields |= tendon_fields(m, jnt_dof, fused) | equality_fields(m, jnt_dof) | weld_fields(m, fused)
     fields |= fluid_fields(m, fused)
     fields |= sensor_fields(m, fused, jnt_dof)
@@ -153,9 +159,14 @@ def load_mjcf(
         gravity=torch.as_tensor(gravity), q0=torch.as_tensor(m.qpos0.copy()),
         joint_stiffness=JOINT_STIFFNESS if joint_stiffness is None else joint_stiffness,
         joint_damping=JOINT_DAMPING if joint_damping is None else joint_damping, contact_timeconst=contact_timeconst,
-        xpbd_iterations=xpbd_iterations, contact_soft=contact_model == "soft", max_speed=max_speed,
+        xpbd_iterations=xpbd_iterations, contact_soft=contact_model == "soft",
+        contact_articulated=contact_model == "articulated", max_speed=max_speed,
         max_distance=max_distance, **fields,
     )
+    if contact_model == "articulated":
+        if articulation.refusal(sys):
+            raise UnsupportedMJCFError(f"contact_model='articulated': {articulation.refusal(sys)}")
+        sys = articulation.with_tree(sys)
     if method == "spring":
         sys = _stable_springs(sys, joint_stiffness is None, joint_damping is None)
         sys = spring_stability.stiff_enough(sys, free_substeps)

@@ -18,8 +18,8 @@ from typing import NamedTuple
 
 import torch
 
-from torchsim import (hinge_anchors, integrator, joint_space, spatial, rigid, soft_contacts, tendon_paths,
-                      welds)
+from torchsim import (articulated_contacts, hinge_anchors, integrator, joint_space, spatial, rigid, soft_contacts,
+                      tendon_paths, welds)
 from torchsim.actuators import body_wrench
 from torchsim.collision import contacts
 from torchsim.fluid import fluid_wrench
@@ -158,7 +158,7 @@ def contact_impulse_terms(sys: System, bodies: Bodies, inv: rigid.InverseInertia
     scale_a, scale_b = rigid.active_count(a, b, active, bodies.x_pos.shape[-2])
     if sys.contact_soft:  # each point's own share: friction's cap is its own, its stopping impulse averaged
         v_n_start = spatial.dot(rigid.contact_arms(start, a, b, con.pos)[2], con.normal)
-        j_n = soft_contacts.normal_impulses(sys, bodies, inv, con, v_n, v_n_start, h)
+        j_n = soft_contacts.normal_impulses(sys, con, soft_contacts.delassus(sys, bodies, inv, con), v_n, v_n_start, h)
         stop_share = scale_a if b is None else torch.minimum(scale_a, scale_b)
         scale_a, scale_b = 1.0, 1.0
     else:
@@ -217,9 +217,10 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     """Forces (actuators, joint springs) -> velocities (armature, damping, limits) -> contact impulses (on
     armature-loaded links) -> positions. Lanes ``bodies``, ``ctrl (U, B)``; ``terms`` from :func:`step_terms` at
     the step's start."""
-    after, inv = free_velocities(sys, bodies, ctrl, terms, h)
-    if sys.contact_groups:
-        # poses not yet moved: the substep's rot
+    after, inv, fr = free_velocities(sys, bodies, ctrl, terms, h)
+    if sys.contact_articulated:  # poses not yet moved: the substep's rot and joint frames
+        after = articulated_contacts.contact_impulses(sys, after, fr, inv.rot, bodies, h)
+    elif sys.contact_groups:
         after = contact_impulses(sys, after, terms.loaded, inv.rot, bodies, h)
     return integrator.integrate_positions(after, h)
 
@@ -227,14 +228,17 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
 def contact_forces(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h: float):
     """The contacts of lanes ``bodies`` and the force ``(3, C, B)`` [N] each point's impulse puts on its body a over
     the first substep from them: what :func:`substep` applies, divided by ``h``."""
-    after, inv = free_velocities(sys, bodies, ctrl, terms, h)
+    after, inv, fr = free_velocities(sys, bodies, ctrl, terms, h)
+    if sys.contact_articulated:
+        con, p_lin, _, _ = articulated_contacts.impulse_terms(sys, after, fr, inv.rot, bodies, h)
+        return con, p_lin / h
     con, _, _, p_lin, scale_a, _ = contact_impulse_terms(sys, after, terms.loaded, inv.rot, bodies, h)
     return con, scale_a * p_lin / h
 
 
 def free_velocities(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h: float):
-    """The substep's velocities before contacts (forces, then armature, damping and limits) and the inverse
-    inertias at its poses."""
+    """The substep's velocities before contacts (forces, then armature, damping and limits), and the inverse
+    inertias and joint frames at its poses."""
     inv = rigid.inverse_inertia(sys, bodies.x_quat, terms.inv_inertia_body)
     fr = joint_frames(sys, bodies, all_slots=False, rot=inv.rot)
     axes = dof_values(sys, fr.axes)
@@ -252,7 +256,7 @@ def free_velocities(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: Step
     after, _ = joint_space.inertia_and_damping(sys, bodies, after, fr, inv, h, q)
     if sys.welds:  # on the armature-loaded links, as contacts: held by its rotor, a light link's hinge turns little
         after = welds.impulses(sys, bodies, after, terms.loaded, h)
-    return after, inv
+    return after, inv, fr
 
 
 METHOD = Method("spring", step_terms, substep, default_substep_timestep=5e-4, contact_forces=contact_forces)
