@@ -74,6 +74,8 @@ def parse_args(argv=None):
                         "other busy processes 1 can be much faster than the default (OpenMP threads wait on each "
                         "other at every op)")
     p.add_argument("--model", default=str(ROOT / "envs" / "assets" / "ant.xml"))
+    p.add_argument("--contact-model", default="impulse", choices=["impulse", "soft", "articulated"],
+                   help="torchsim.load_mjcf's contact_model (spring method)")
     p.add_argument("--accuracy-seconds", type=float, default=2.0)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="write the results as markdown to this path")
@@ -292,7 +294,7 @@ def make_compiled(system):
 # ----------------------------------------------------------------------------------------------- accuracy
 def accuracy(method: str, m: mujoco.MjModel) -> dict:
     """Torso height (free-joint qpos z) of torchsim (float64, batch 1, eager) vs MuJoCo; home keyframe, zero ctrl."""
-    system = torchsim.load_mjcf(ARGS.model, method=method, dtype=torch.float64)
+    system = torchsim.load_mjcf(ARGS.model, method=method, dtype=torch.float64, contact_model=ARGS.contact_model)
     dt = float(system.timestep)
     n_total = int(round(ARGS.accuracy_seconds / dt))
     marks = sorted({int(round(0.5 / dt)), n_total})
@@ -387,7 +389,8 @@ def main():
         f"MuJoCo timestep={m.opt.timestep:g})")
     results = []
     for method in ARGS.methods:
-        system = torchsim.load_mjcf(ARGS.model, method=method, dtype=dtype, device=device)
+        system = torchsim.load_mjcf(ARGS.model, method=method, dtype=dtype, device=device,
+                                    contact_model=ARGS.contact_model)
         log(f"\n[{method}] timestep={system.timestep:g} s, substeps={system.substeps}")
         warm_engine(system, device, dtype)
         for batch in ARGS.batches:

@@ -66,7 +66,7 @@ def humanoid_lying_start(m: mujoco.MjModel) -> np.ndarray:
 #: substeps or None for load_mjcf's default), the first being the env's default).
 SCENES = {
     "ant": (ant_xml, ant_rest_start, 3.0, [("spring", "soft", None), ("spring", "impulse", None),
-                                           ("xpbd", "impulse", None)]),
+                                           ("spring", "articulated", None), ("xpbd", "impulse", None)]),
     "humanoid lying": (humanoid_lying_xml, humanoid_lying_start, 6.0, [("spring", "impulse", None),
                                                                        ("spring", "soft", None),
                                                                        ("xpbd", "impulse", None)]),
