@@ -7,8 +7,8 @@ through its joint springs, a substep or more later: a hopper's foot landing stop
 above it swing on and stretch the springs. Here ``A = J_n M^-1 J_n^T``, ``M`` the tree's joint-space inertia with
 armature (``torchsim.articulation``) and ``J_n`` the points' normal rows in its columns, as MuJoCo's constraint
 solve has it, and the impulses move every body by its Jacobian times ``M^-1 J_c^T p``: the landing stops the leg
-and torso with the foot, as rigid joints would. Passive rollouts of the gymnasium hopper and walker then miss MuJoCo
-by 3.2x and 2.2x its own dt sensitivity, where the body-local soft contacts miss by 140x and 159x
+and torso with the foot, as rigid joints would. Passive rollouts of gymnasium's hopper and walker2d then miss MuJoCo
+by 5.2x and 2.9x its own dt sensitivity, where the body-local soft contacts miss by 233x and 194x
 (``docs/physics.md``).
 
 Friction stays per point, as in the other contact models: a Coulomb-capped impulse stopping the point's sliding,
@@ -23,6 +23,7 @@ import torch
 from torchsim import articulation, rigid, soft_contacts, spatial
 from torchsim.collision import Contacts, contacts
 from torchsim.kinematics import Bodies, JointFrames
+from torchsim.system import System
 
 
 def point_rows(model: articulation.Articulation, bodies: Bodies, con: Contacts, direction: torch.Tensor):
@@ -41,7 +42,7 @@ def point_rows(model: articulation.Articulation, bodies: Bodies, con: Contacts, 
     return rows
 
 
-def impulse_terms(sys, bodies: Bodies, frames: JointFrames, rot: torch.Tensor, start: Bodies, h: float):
+def impulse_terms(sys: System, bodies: Bodies, frames: JointFrames, rot: torch.Tensor, start: Bodies, h: float):
     """The contacts at the poses of lanes ``bodies`` (velocities after the substep's other forces), each point's
     impulse ``p_lin (3, K, B)`` on its body a, and the columns' rate change ``(C, B)`` the impulses make; ``frames``
     and ``rot (3, 3, N + 1, B)`` at those poses, ``start`` the bodies at the substep's start."""
@@ -72,7 +73,8 @@ def impulse_terms(sys, bodies: Bodies, frames: JointFrames, rot: torch.Tensor, s
     return con, j_n * con.normal - j_t * tangent, model, rate_change
 
 
-def contact_impulses(sys, bodies: Bodies, frames: JointFrames, rot: torch.Tensor, start: Bodies, h: float) -> Bodies:
+def contact_impulses(sys: System, bodies: Bodies, frames: JointFrames, rot: torch.Tensor, start: Bodies,
+                     h: float) -> Bodies:
     """``bodies`` after the contact impulses of :func:`impulse_terms`, through the tree."""
     _, _, model, rate_change = impulse_terms(sys, bodies, frames, rot, start, h)
     world = bodies.xd_vel.new_zeros(3, 1, bodies.xd_vel.shape[-1])

@@ -218,10 +218,9 @@ def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h
     armature-loaded links) -> positions. Lanes ``bodies``, ``ctrl (U, B)``; ``terms`` from :func:`step_terms` at
     the step's start."""
     after, inv, fr = free_velocities(sys, bodies, ctrl, terms, h)
-    if sys.contact_articulated:  # poses not yet moved: the substep's rot and joint frames
-        after = articulated_contacts.contact_impulses(sys, after, fr, inv.rot, bodies, h)
-    elif sys.contact_groups:
-        after = contact_impulses(sys, after, terms.loaded, inv.rot, bodies, h)
+    if sys.contact_groups:  # poses not yet moved: the substep's rot and joint frames
+        after = (articulated_contacts.contact_impulses(sys, after, fr, inv.rot, bodies, h) if sys.contact_articulated
+                 else contact_impulses(sys, after, terms.loaded, inv.rot, bodies, h))
     return integrator.integrate_positions(after, h)
 
 
