@@ -32,10 +32,11 @@ def test_a_free_body_rests_and_lands_as_with_soft_contacts():
 
 
 def test_hopper_lands_as_mujoco():
-    """The gymnasium hopper from its initial pose with random velocities (``studies/check_third_party.py``'s start:
-    seed 0, 0.1 std; 0.5 s passive, landing on its foot and tipping): torchsim's RMS error against MuJoCo at a
-    quarter of the timestep within 5x MuJoCo's own at the timestep (the issue's bar; measured 3.2x, the soft
-    contacts 140x: their impulse stops the foot alone, and the leg and torso swing on through the joint springs)."""
+    """The envs' hopper (``envs/assets/hopper.xml``) from its initial pose with random velocities
+    (``studies/check_third_party.py``'s start: seed 0, 0.1 std; 0.5 s passive, landing on its foot and tipping):
+    torchsim's RMS error against MuJoCo at a quarter of the timestep within 5x MuJoCo's own at the timestep (the
+    issue's bar; measured 3.2x, the soft contacts 140x: their impulse stops the foot alone, and the leg and torso
+    swing on through the joint springs)."""
     m = mujoco.MjModel.from_xml_string(HOPPER)
     steps = round(0.5 / m.opt.timestep)
     qd0 = np.random.default_rng(0).normal(0.0, 0.1, m.nv)

@@ -26,19 +26,20 @@ from torchsim.kinematics import Bodies, JointFrames
 from torchsim.system import System
 
 
-def point_rows(model: articulation.Articulation, bodies: Bodies, con: Contacts, direction: torch.Tensor):
-    """``(C, K, B)``: the rate along ``direction (3, K, B)`` of each contact point, body a's relative to body b's,
-    per unit rate of each column."""
+def point_rows(model: articulation.Articulation, bodies: Bodies, con: Contacts, directions: tuple):
+    """``(C, K, B)`` for each of ``directions`` ``(3, K, B)``: the rate along it of each contact point, body a's
+    relative to body b's, per unit rate of each column. Each side's Jacobian is gathered once for all directions."""
+    world = model.vel.new_zeros(model.vel.shape[:2] + (1,) + model.vel.shape[3:])
+    vel_ext, ang_ext = torch.cat((model.vel, world), 2), torch.cat((model.ang, world), 2)
     rows = None
     for body, sign in ((con.body_a, 1.0), (con.body_b, -1.0)):
         if body is None:  # every pair a plane pair: b is the world
             continue
-        world = model.vel.new_zeros(model.vel.shape[:2] + (1,) + model.vel.shape[3:])
-        vel = torch.cat((model.vel, world), 2).index_select(2, body)  # (3, C, K, B)
-        ang = torch.cat((model.ang, world), 2).index_select(2, body)
+        vel, ang = vel_ext.index_select(2, body), ang_ext.index_select(2, body)  # (3, C, K, B)
         arm = con.pos - bodies.x_pos.index_select(-2, body)
-        row = spatial.dot(vel, direction.unsqueeze(1)) + spatial.dot(ang, spatial.cross(arm, direction).unsqueeze(1))
-        rows = sign * row if rows is None else rows + sign * row
+        side = [sign * (spatial.dot(vel, d.unsqueeze(1)) + spatial.dot(ang, spatial.cross(arm, d).unsqueeze(1)))
+                for d in directions]
+        rows = side if rows is None else [r + s for r, s in zip(rows, side)]
     return rows
 
 
@@ -55,7 +56,7 @@ def impulse_terms(sys: System, bodies: Bodies, frames: JointFrames, rot: torch.T
     v_t = v_rel - v_n * con.normal
     speed_t = spatial.safe_norm(v_t)
     tangent = v_t / speed_t
-    normal_rows, tangent_rows = point_rows(model, bodies, con, con.normal), point_rows(model, bodies, con, tangent)
+    normal_rows, tangent_rows = point_rows(model, bodies, con, (con.normal, tangent))
     num_points = con.depth.shape[0]
     # M^-1 J^T for the normal and the tangent rows in one solve: (C, 2K, B)
     mobility = spatial.spd_solve(articulation.with_armature(sys, model.inertia),
@@ -77,7 +78,4 @@ def contact_impulses(sys: System, bodies: Bodies, frames: JointFrames, rot: torc
                      h: float) -> Bodies:
     """``bodies`` after the contact impulses of :func:`impulse_terms`, through the tree."""
     _, _, model, rate_change = impulse_terms(sys, bodies, frames, rot, start, h)
-    world = bodies.xd_vel.new_zeros(3, 1, bodies.xd_vel.shape[-1])
-    d_vel = torch.cat(((model.vel * rate_change[:, None]).sum(1), world), 1)
-    d_ang = torch.cat(((model.ang * rate_change[:, None]).sum(1), world), 1)
-    return bodies._replace(xd_vel=bodies.xd_vel + d_vel, xd_ang=bodies.xd_ang + d_ang)
+    return articulation.move(bodies, model, rate_change)

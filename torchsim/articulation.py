@@ -117,3 +117,12 @@ def with_armature(sys: System, inertia: torch.Tensor) -> torch.Tensor:
                           lanes.param(sys.free_armature, 1).repeat_interleave(6, 0)))
     diagonal = torch.arange(n_columns, device=inertia.device) * (n_columns + 1)
     return inertia.flatten(0, 1).index_add(0, diagonal, armature.expand(-1, batch)).view(n_columns, n_columns, batch)
+
+
+def move(bodies: Bodies, model: Articulation, rate_change: torch.Tensor) -> Bodies:
+    """``bodies`` (lanes, world last) with each body's velocities changed by its Jacobian times the columns' rate
+    change ``(C, B)``: the motion of the rigid tree."""
+    world = bodies.xd_vel.new_zeros(3, 1, bodies.xd_vel.shape[-1])
+    d_vel = torch.cat(((model.vel * rate_change[:, None]).sum(1), world), 1)
+    d_ang = torch.cat(((model.ang * rate_change[:, None]).sum(1), world), 1)
+    return bodies._replace(xd_vel=bodies.xd_vel + d_vel, xd_ang=bodies.xd_ang + d_ang)

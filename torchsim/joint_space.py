@@ -319,10 +319,7 @@ def articulated_rate_solve(sys: System, before: Bodies, after: Bodies, frames: J
                                  limit_rows(sys, q, qd, h))
     friction_h = hinge_friction_limits(sys, h)
     mu = spatial.spd_solve(mat, rhs) if friction_h is None else _hinge_friction(sys, mat, a, rhs, qd_raw, friction_h)
-    rate_change = (mobility * mu).sum(1)  # (C, B)
-    world = after.xd_vel.new_zeros(3, 1, batch)
-    after = after._replace(xd_vel=after.xd_vel + torch.cat(((model.vel * rate_change[:, None]).sum(1), world), 1),
-                           xd_ang=after.xd_ang + torch.cat(((model.ang * rate_change[:, None]).sum(1), world), 1))
+    after = articulation.move(after, model, (mobility * mu).sum(1))
     if sys.root_passive:
         after = root_rate_solve(sys, before, after, frames, inv, h)
     return after, qd_raw + spatial.matvec(a, mu)
