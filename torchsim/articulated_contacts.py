@@ -11,11 +11,16 @@ and torso with the foot, as rigid joints would. Passive rollouts of gymnasium's 
 by 5.2x and 2.9x its own dt sensitivity, where the body-local soft contacts miss by 233x and 194x
 (``docs/physics.md``).
 
-Friction stays per point, as in the other contact models: a Coulomb-capped impulse stopping the point's sliding,
-sized by the point's articulated inverse inertia along it and shared among its body's active points, applied with
-the normals through the tree. The cost is dense: ``C^2 N`` products to build ``M``, one ``C x C`` factorisation and
-``2K`` solves with it, and the ``K x K`` normal solve, per env and substep (``C`` columns, ``N`` bodies, ``K``
-contact points).
+Friction is solved with the normal, as MuJoCo's default pyramidal cone has it: each point pushes along four edges
+``n +- mu t`` (``soft_contacts.pyramid_edges``), every edge a row of one ``4K x 4K`` solve through the tree, each
+with its own reference speed and MuJoCo's edge regulariser, the edges that would pull released by principal
+pivoting (``soft_contacts.nonnegative_solve``). An elliptic cone (``<option cone="elliptic">``) is solved on the
+same pyramid. One env step from the states a trained Ant visits then misses MuJoCo's converged answer by less than
+MuJoCo at its own time step does (``studies/transfer_step_error.py``; ``docs/transfer_gap.md``).
+
+The cost is dense: ``C^2 N`` products to build ``M``, one ``C x C`` factorisation and ``4K`` solves with it, and
+``PIVOT_PASSES`` factorisations of the ``4K x 4K`` edge system, per env and substep (``C`` columns, ``N`` bodies,
+``K`` contact points).
 """
 
 import torch
@@ -49,29 +54,15 @@ def impulse_terms(sys: System, bodies: Bodies, frames: JointFrames, rot: torch.T
     and ``rot (3, 3, N + 1, B)`` at those poses, ``start`` the bodies at the substep's start."""
     con = contacts(sys, bodies, rot)
     model = articulation.articulation(sys, bodies, frames, rot)
-    a, b = con.body_a, con.body_b
-    v_rel = rigid.contact_arms(bodies, a, b, con.pos)[2]
-    v_n = spatial.dot(v_rel, con.normal)
-    v_n_start = spatial.dot(rigid.contact_arms(start, a, b, con.pos)[2], con.normal)
-    v_t = v_rel - v_n * con.normal
-    speed_t = spatial.safe_norm(v_t)
-    tangent = v_t / speed_t
-    normal_rows, tangent_rows = point_rows(model, bodies, con, (con.normal, tangent))
-    num_points = con.depth.shape[0]
-    # M^-1 J^T for the normal and the tangent rows in one solve: (C, 2K, B)
-    mobility = spatial.spd_solve(articulation.with_armature(sys, model.inertia),
-                                 torch.cat((normal_rows, tangent_rows), 1))
-    normal_mobility, tangent_mobility = mobility[:, :num_points], mobility[:, num_points:]
-    inverse_inertia = (normal_rows.unsqueeze(2) * normal_mobility.unsqueeze(1)).sum(0)  # (K, K, B)
-    j_n = soft_contacts.normal_impulses(sys, con, inverse_inertia, v_n, v_n_start, h)
-    # a point on bodies no column moves (mocap against the world) meets no inverse inertia: it stops nothing
-    w_t = (tangent_rows * tangent_mobility).sum(0).clamp_min(1e-12)
-    active = (con.depth > 0).to(con.depth.dtype)
-    share_a, share_b = rigid.active_count(a, b, active, bodies.x_pos.shape[-2])
-    share = share_a if b is None else torch.minimum(share_a, share_b)
-    j_t = torch.minimum(share * speed_t / w_t, con.friction * j_n)
-    rate_change = (normal_mobility * j_n).sum(1) - (tangent_mobility * j_t).sum(1)
-    return con, j_n * con.normal - j_t * tangent, model, rate_change
+    edges = soft_contacts.pyramid_edges(con)  # (4, 3, K, B)
+    edge_rows = torch.cat(point_rows(model, bodies, con, edges.unbind(0)), 1)  # (C, 4K, B), edge-major
+    mobility = spatial.spd_solve(articulation.with_armature(sys, model.inertia), edge_rows)  # M^-1 J^T
+    inverse_inertia = (edge_rows.unsqueeze(2) * mobility.unsqueeze(1)).sum(0)  # (4K, 4K, B)
+    v_rel, v_rel_start = (rigid.contact_arms(b, con.body_a, con.body_b, con.pos)[2] for b in (bodies, start))
+    edge_impulses = soft_contacts.pyramid_impulses(sys, con, inverse_inertia, (edges * v_rel).sum(1),
+                                                   (edges * v_rel_start).sum(1), h)  # (4, K, B)
+    rate_change = (mobility * edge_impulses.flatten(0, 1)).sum(1)
+    return con, (edge_impulses.unsqueeze(1) * edges).sum(0), model, rate_change
 
 
 def contact_impulses(sys: System, bodies: Bodies, frames: JointFrames, rot: torch.Tensor, start: Bodies,

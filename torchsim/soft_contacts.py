@@ -51,21 +51,83 @@ def normal_impulses(sys: System, con: Contacts, inverse_inertia: torch.Tensor, v
                     v_n_start: torch.Tensor, h: float) -> torch.Tensor:
     """Each point's normal impulse ``(C, B)`` (>= 0, 0 where inactive) for normal speeds ``v_n`` after the other
     forces and ``v_n_start`` at the substep's start ``(C, B)``, over a substep ``h``; ``inverse_inertia (C, C, B)``
-    the normals' ``A``: through the bodies (:func:`delassus`, from armature-loaded inertias,
-    ``joint_space.armature_loaded_inertia``) or through the articulation (``torchsim.articulated_contacts``)."""
-    k, b = lanes.param(sys.contact_gains, 2).unbind(-2)
-    imp = impedance(sys.contact_solimp, con.depth, sys.contact_solimp_square)
-    target = v_n_start + h * (k * imp * con.depth - b * v_n_start)
-    reg = (1.0 - imp) / imp * lanes.param(sys.contact_invweight, 1)
+    the normals' ``A`` through the bodies (:func:`delassus`, from armature-loaded inertias,
+    ``joint_space.armature_loaded_inertia``). One pass: a point that would pull is released after the solve."""
+    target, reg = reference(sys, con, v_n_start, h)
     if sys.contact_pyramidal:  # 4 edges J_n +- mu J_t share the normal, each regularised 2 mu^2 (1 + mu^2) R
         mu2 = con.friction * con.friction
         reg = reg * torch.where(mu2 > 0, 0.5 * mu2 * (1.0 + mu2), 1.0)
     active = con.depth > 0
-    num_points = active.shape[0]
-    # inactive points get an identity row and a zero right-hand side: impulse 0, no coupling
-    both = (active.unsqueeze(1) & active.unsqueeze(0)).flatten(0, 1)
-    flat = torch.where(both, inverse_inertia.flatten(0, 1), 0.0)
-    diagonal = torch.arange(num_points, device=active.device) * (num_points + 1)
-    mat = flat.index_add(0, diagonal, torch.where(active, reg, 1.0)).view(num_points, num_points, -1)
-    impulse = spatial.spd_solve(mat, torch.where(active, target - v_n, 0.0))
-    return torch.where(active, impulse.clamp_min(0.0), 0.0)
+    return nonnegative_solve(inverse_inertia, reg, target - v_n, active, active, passes=1)
+
+
+def pyramid_edges(con: Contacts) -> torch.Tensor:
+    """``(4, 3, C, B)``: the directions ``n + mu t1, n - mu t1, n + mu t2, n - mu t2`` of MuJoCo's pyramidal cone
+    (condim 3) at each point, ``t1, t2`` the tangents of MuJoCo's contact frame (``mju_makeFrame``: world y made
+    normal to ``n``, or world z where ``n`` is within 60 degrees of y; ``t2 = n x t1``). Frictionless points get
+    four copies of the normal."""
+    n = con.normal
+    near_y = (n[1].abs() >= 0.5).to(n.dtype)
+    seed = torch.stack((torch.zeros_like(near_y), 1.0 - near_y, near_y))
+    t1 = seed - n * spatial.dot(n, seed)
+    t1 = t1 / spatial.safe_norm(t1)
+    t2 = spatial.cross(n, t1)
+    mu = con.friction
+    return torch.stack((n + mu * t1, n - mu * t1, n + mu * t2, n - mu * t2))
+
+
+def pyramid_impulses(sys: System, con: Contacts, inverse_inertia: torch.Tensor, v_e: torch.Tensor,
+                     v_e_start: torch.Tensor, h: float) -> torch.Tensor:
+    """Each edge's impulse ``(4, C, B)`` (>= 0, 0 where inactive) along :func:`pyramid_edges`, as MuJoCo's
+    constraint solve has it: the edges' speeds ``v_e`` after the other forces and ``v_e_start`` at the substep's
+    start ``(4, C, B)``, their inverse inertia ``(4C, 4C, B)`` (edge-major), each edge's reference built from its
+    point's depth and its own speed, each regularised by ``2 mu^2 (1 + mu^2) R`` (``4 R``: a frictionless point's
+    four copies of its normal act as one with ``R``)."""
+    target, reg = reference(sys, con, v_e_start, h)
+    mu2 = con.friction * con.friction
+    reg = reg * torch.where(mu2 > 0, 2.0 * mu2 * (1.0 + mu2), 4.0)
+    rhs = (target - v_e).flatten(0, 1)
+    active = (con.depth > 0).expand_as(v_e).flatten(0, 1)
+    # start from the edges whose own reference asks for a push: a sliding point's trailing edges drop out at once
+    impulse = nonnegative_solve(inverse_inertia, reg.expand_as(v_e).flatten(0, 1), rhs, active, active & (rhs > 0),
+                                passes=PIVOT_PASSES)
+    return impulse.view(v_e.shape)
+
+
+def reference(sys: System, con: Contacts, v_start: torch.Tensor, h: float):
+    """The speed ``target = v + h aref`` each row aims for over the substep, for speeds ``v_start (..., C, B)`` at
+    its start along the rows, and each point's bare regulariser ``R = (1 - imp) / imp A0`` ``(C, B)``."""
+    k, b = lanes.param(sys.contact_gains, 2).unbind(-2)
+    imp = impedance(sys.contact_solimp, con.depth, sys.contact_solimp_square)
+    target = v_start + h * (k * imp * con.depth - b * v_start)
+    return target, (1.0 - imp) / imp * lanes.param(sys.contact_invweight, 1)
+
+
+# Principal pivoting passes of the pyramid solve. On the states a trained Ant visits (studies/transfer_step_error.py)
+# the share of envs whose set still changes after each pass is 21 %, 5 %, 0.8 %, 0.09 %, and the step's error
+# against MuJoCo is the same with 4 passes as with 8.
+PIVOT_PASSES = 4
+
+
+def nonnegative_solve(inverse_inertia: torch.Tensor, reg: torch.Tensor, rhs: torch.Tensor, active: torch.Tensor,
+                      start: torch.Tensor, passes: int) -> torch.Tensor:
+    """``p (R, B)``, ``p >= 0``, minimising ``p^T (A + R) p / 2 - rhs^T p`` over the ``active`` rows (the rest held
+    at 0), for ``A = inverse_inertia (R, R, B)`` and ``R = diag(reg (R, B))``: the complementarity of a contact
+    solve (``(A + R) p - rhs`` is 0 where ``p > 0`` and ``>= 0`` where ``p = 0``) by block principal pivoting with a
+    fixed number of passes, branch-free. Each pass solves for the rows in its set (the first: ``start``) and then
+    drops the rows that pull (``p < 0``) and takes back those the solution would push through (residual ``< 0``);
+    after the last, pulling rows are released."""
+    num_rows = active.shape[0]
+    diagonal = torch.arange(num_rows, device=active.device) * (num_rows + 1)
+    mat = inverse_inertia.flatten(0, 1).index_add(0, diagonal, reg)
+    chosen = start
+    for pass_index in range(passes):
+        both = (chosen.unsqueeze(1) & chosen.unsqueeze(0)).flatten(0, 1)
+        # rows out of the set get an identity row and a zero right-hand side: impulse 0, no coupling
+        masked = torch.where(both, mat, 0.0).index_add(0, diagonal, 1.0 - chosen.to(mat.dtype))
+        impulse = torch.where(chosen, spatial.spd_solve(masked.view(num_rows, num_rows, -1),
+                                                        torch.where(chosen, rhs, 0.0)), 0.0)
+        if pass_index + 1 < passes:
+            residual = (mat.view(num_rows, num_rows, -1) * impulse.unsqueeze(0)).sum(1) - rhs
+            chosen = active & (torch.where(chosen, impulse, -residual) > 0)
+    return impulse.clamp_min(0.0)
