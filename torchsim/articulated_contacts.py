@@ -8,7 +8,7 @@ above it swing on and stretch the springs. Here ``A = J_n M^-1 J_n^T``, ``M`` th
 armature (``torchsim.articulation``) and ``J_n`` the points' normal rows in its columns, as MuJoCo's constraint
 solve has it, and the impulses move every body by its Jacobian times ``M^-1 J_c^T p``: the landing stops the leg
 and torso with the foot, as rigid joints would. Passive rollouts of gymnasium's hopper and walker2d then miss MuJoCo
-by 5.2x and 2.9x its own dt sensitivity, where the body-local soft contacts miss by 233x and 194x
+by 2.9x and 2.4x its own dt sensitivity, where the body-local soft contacts miss by 233x and 194x
 (``docs/physics.md``).
 
 Friction is solved with the normal, as MuJoCo's default pyramidal cone has it: each point pushes along four edges
