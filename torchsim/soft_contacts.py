@@ -17,6 +17,10 @@ MuJoCo's default pyramidal friction cone carries the normal force on 4 edges ``J
 with ``R`` scaled by ``2 mu^2 (1 + mu^2)``: the normal is regularised by ``mu^2 (1 + mu^2) / 2`` times the bare
 ``R``, so a contact with friction 2 rests 5.3x deeper than with friction 1 (measured in MuJoCo; both reproduced,
 ``tests/test_soft_contacts.py``). A frictionless contact (condim 1) keeps the bare ``R``, as does an elliptic cone.
+
+The articulated contacts (``torchsim.articulated_contacts``) solve those edges themselves, as MuJoCo does: each edge
+a row with its own reference speed, the edges that would pull released by principal pivoting
+(:func:`pyramid_impulses`, :func:`nonnegative_solve`).
 """
 
 import torch
@@ -82,10 +86,14 @@ def pyramid_impulses(sys: System, con: Contacts, inverse_inertia: torch.Tensor, 
     constraint solve has it: the edges' speeds ``v_e`` after the other forces and ``v_e_start`` at the substep's
     start ``(4, C, B)``, their inverse inertia ``(4C, 4C, B)`` (edge-major), each edge's reference built from its
     point's depth and its own speed, each regularised by ``2 mu^2 (1 + mu^2) R`` (``4 R``: a frictionless point's
-    four copies of its normal act as one with ``R``)."""
+    four copies of its normal act as one with ``R``). An elliptic cone's friction is solved on the same pyramid, its
+    normal with the bare ``R`` (``4 R`` on each edge), as MuJoCo regularises an elliptic cone's normal."""
     target, reg = reference(sys, con, v_e_start, h)
-    mu2 = con.friction * con.friction
-    reg = reg * torch.where(mu2 > 0, 2.0 * mu2 * (1.0 + mu2), 4.0)
+    if sys.contact_pyramidal:
+        mu2 = con.friction * con.friction
+        reg = reg * torch.where(mu2 > 0, 2.0 * mu2 * (1.0 + mu2), 4.0)
+    else:
+        reg = 4.0 * reg
     rhs = (target - v_e).flatten(0, 1)
     active = (con.depth > 0).expand_as(v_e).flatten(0, 1)
     # start from the edges whose own reference asks for a push: a sliding point's trailing edges drop out at once
