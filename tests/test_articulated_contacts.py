@@ -54,8 +54,9 @@ def test_a_sliding_box_stops_as_mujocos_pyramid_stops_it():
     friction along an edge's axis to ``mu`` times the load but along the diagonal to ``mu / sqrt 2`` of it, so the
     diagonal slide lasts longer (0.50 m/s left at 0.15 s, 0.04 along x; torchsim 0.39 and 0.04). The articulated
     contacts solve the same pyramid: their velocities stay closer to MuJoCo's converged answer (0.1 ms steps) than
-    MuJoCo's own at the scene's 2 ms step (measured 0.090 against 0.196 m/s along x, 0.075 against 0.090 on the diagonal). The soft
-    model's per-point friction stops every direction alike (0.52 m/s at 0.1 s on the diagonal; MuJoCo 0.81)."""
+    MuJoCo's own at the scene's 2 ms step (measured 0.090 against 0.196 m/s along x, 0.075 against 0.090 on the
+    diagonal). The soft model's per-point friction stops every direction alike (0.52 m/s at 0.1 s on the diagonal;
+    MuJoCo 0.81)."""
     def xml_at(dt):
         return scene("box", mu=0.5, dt=dt)[0]
 

@@ -11,12 +11,12 @@ and torso with the foot, as rigid joints would. Passive rollouts of gymnasium's 
 by 2.9x and 2.4x its own dt sensitivity, where the body-local soft contacts miss by 233x and 194x
 (``docs/physics.md``).
 
-Friction is solved with the normal, as MuJoCo's default pyramidal cone has it: each point pushes along four edges
-``n +- mu t`` (``soft_contacts.pyramid_edges``), every edge a row of one ``4K x 4K`` solve through the tree, each
-with its own reference speed and MuJoCo's edge regulariser, the edges that would pull released by principal
-pivoting (``soft_contacts.nonnegative_solve``). An elliptic cone's friction (``<option cone="elliptic">``) is
-solved on the same pyramid. One env step from the states a trained Ant visits then misses MuJoCo's converged answer by less than
-MuJoCo at its own time step does (``studies/transfer_step_error.py``; ``docs/transfer_gap.md``).
+Friction is solved with the normal, as MuJoCo's default pyramidal cone has it: each point pushes along four edges ``n +-
+mu t`` (``soft_contacts.pyramid_edges``), every edge a row of one ``4K x 4K`` solve through the tree, each with its own
+reference speed and MuJoCo's edge regulariser, the edges that would pull released by principal pivoting
+(``soft_contacts.nonnegative_solve``). An elliptic cone's friction (``<option cone="elliptic">``) is solved on the same
+pyramid. One env step from the states a trained Ant visits then misses MuJoCo's converged answer by less than MuJoCo at
+its own time step does (``studies/transfer_step_error.py``; ``docs/transfer_gap.md``).
 
 The cost is dense: ``C^2 N`` products to build ``M``, one ``C x C`` factorisation and ``4K`` solves with it, and
 ``PIVOT_PASSES`` factorisations of the ``4K x 4K`` edge system, per env and substep (``C`` columns, ``N`` bodies,
