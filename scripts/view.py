@@ -39,14 +39,23 @@ def load(checkpoint):
     return env, load_policy(ckpt, env, "cpu"), cfg.env.name
 
 
-def episode(env, actor, steps: int, on_step=None) -> np.ndarray:
+def episode(env, actor, steps: int, on_step=None) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
     """Run one episode (at most ``steps`` steps; random actions where ``actor`` is None) and return env 0's ``q``
-    trajectory ``(T, nq)``; ``on_step(base_env)`` after every step."""
+    trajectory ``(T, nq)`` and its mocap bodies' poses ``(T, K, 3)``, ``(T, K, 4)`` (a task's targets, which
+    may move every step); ``on_step(base_env)`` after every step."""
     from torchrl.envs import ExplorationType, set_exploration_type
 
     base = getattr(env, "base_env", env)
+
+    def record():  # the System's mocap poses: the model's (K, .) or per env (B, K, .) once a task has set them
+        pos, quat = (x if x.ndim == 2 else x[0] for x in (base.sys.mocap_pos, base.sys.mocap_quat))
+        qpos.append(base.state.q[0].double().numpy())
+        mocap_pos.append(pos.double().numpy())
+        mocap_quat.append(quat.double().numpy())
+
+    qpos, mocap_pos, mocap_quat = [], [], []
     td = env.reset()
-    qpos = [base.state.q[0].double().numpy()]
+    record()
     with torch.no_grad(), set_exploration_type(ExplorationType.DETERMINISTIC):
         for _ in range(steps):
             if actor is None:
@@ -54,13 +63,13 @@ def episode(env, actor, steps: int, on_step=None) -> np.ndarray:
                 td = env.step(td)
             else:
                 td = env.step(actor(td))
-            qpos.append(base.state.q[0].double().numpy())
+            record()
             if on_step is not None:
                 on_step(base)
             if td["next", "done"].any():
                 break
             td = env.step_mdp(td)
-    return np.stack(qpos)
+    return np.stack(qpos), (np.stack(mocap_pos), np.stack(mocap_quat))
 
 
 def parser() -> argparse.ArgumentParser:
@@ -105,8 +114,8 @@ def main():
     if scene.skipped:
         print(f"not drawn (meshes, height fields): {', '.join(scene.skipped)}")
     if args.save:
-        qpos = episode(env, actor, args.steps)
-        path = save_html(scene, trajectory(base.sys, qpos), args.save, dt=base.dt)
+        qpos, mocap = episode(env, actor, args.steps)
+        path = save_html(scene, trajectory(base.sys, qpos), args.save, dt=base.dt, mocap=mocap)
         print(f"wrote {path} ({len(qpos)} frames of {name}, {path.stat().st_size / 1e6:.1f} MB)")
         return
     viewer = Viewer(scene, host=args.host, port=args.port)
@@ -126,7 +135,7 @@ def main():
                 env, actor, _ = load(checkpoint)
                 base = env.base_env
                 print(f"reloaded {checkpoint}", flush=True)
-            qpos = episode(env, actor, args.steps, on_step=show)
+            qpos, _ = episode(env, actor, args.steps, on_step=show)
             done += 1
             print(f"episode {done}: {len(qpos) - 1} steps", flush=True)
     except KeyboardInterrupt:

@@ -165,6 +165,36 @@ def test_viewer_moves_mocap_bodies_to_given_poses():
         viewer.close()
 
 
+def test_trajectories_carry_mocap_poses():
+    """``play``, ``to_html`` and ``save_html`` take the mocap bodies' poses along a trajectory, ``(T, K, .)`` or
+    ``(K, .)`` for every frame: the frame ends where the last pose puts it, and a track of another length is
+    refused with the shapes it takes."""
+    pytest.importorskip("viser", reason="viser not installed (pip install viser)")
+    import mujoco
+
+    from torchsim.render.viewer import Viewer, mocap_track, trajectory
+
+    system = torchsim.load_mjcf(MOCAP_TARGET)
+    scene = Scene.build(mujoco.MjModel.from_xml_string(MOCAP_TARGET), system)
+    poses = trajectory(system, system.q0[None].repeat(3, 1))
+    track = torch.tensor([[[0.0, 0.0, 1.0]], [[0.2, 0.0, 1.0]], [[0.4, -0.1, 0.8]]]), torch.tensor([1.0, 0, 0, 0.5])
+    pos, quat = mocap_track((track[0], track[1][None]), 3, 1)
+    assert pos.shape == (3, 1, 3) and quat.shape == (3, 1, 4)
+    np.testing.assert_allclose(quat[2, 0], np.array([1.0, 0, 0, 0.5]) / np.sqrt(1.25))
+    viewer = Viewer(scene, host="127.0.0.1", port=8792, verbose=False)
+    try:
+        viewer.play(poses, dt=0.0, mocap=(track[0], track[1][None]))
+        np.testing.assert_allclose(viewer.mocap[0].position, (0.4, -0.1, 0.8), atol=1e-9)
+        np.testing.assert_allclose(viewer.mocap[0].wxyz, quat[2, 0], atol=1e-9)
+        moving, still = viewer.to_html(poses, 0.05, mocap=(track[0], track[1][None])), viewer.to_html(poses, 0.05)
+        assert moving != still
+        np.testing.assert_allclose(viewer.mocap[0].position, (0.4, -0.1, 0.8), atol=1e-9)  # no track: left there
+        with pytest.raises(ValueError, match=r"mocap_pos must be \(1, 3\) or \(T, 1, 3\).*T = 3 frames"):
+            viewer.play(poses, dt=0.0, mocap=(track[0][:2], track[1][None]))
+    finally:
+        viewer.close()
+
+
 def _chromium():
     for name in ("chromium", "chromium-browser", "google-chrome"):
         if shutil.which(name):

@@ -11,10 +11,11 @@ Each geom of the :class:`~torchsim.render.Scene` (plane, sphere, capsule, ellips
 with their own triangles, height fields as the scene triangulates them) becomes a mesh in its colour, a child of
 its torchsim body's frame; per update only the bodies' frames move (``State.x_pos`` / ``x_quat``, as
 :func:`torchsim.render.render` reads them). A mocap body's geoms are children of a frame at its model pose
-(``Scene.mocap_pos``/``mocap_quat``) until an update gives their poses. :func:`save_html` records a trajectory into a single HTML file
-holding viser's client and the recording (playback bar, orbit camera) that opens in a browser from disk, with
-neither torchsim nor Python installed. ``pip install -e '.[viewer]'`` installs viser; ``scripts/view.py`` opens
-rollouts, trained policies and live training runs.
+(``Scene.mocap_pos``/``mocap_quat``) until an update, or a trajectory's ``mocap`` poses, give theirs.
+:func:`save_html` records a trajectory into a single HTML file holding viser's client and the recording
+(playback bar, orbit camera) that opens in a browser from disk, with neither torchsim nor Python installed.
+``pip install -e '.[viewer]'`` installs viser; ``scripts/view.py`` opens rollouts, trained policies and live
+training runs.
 
 Camera: ``eye``/``target``/``fovy`` (degrees, vertical) set the initial view as :meth:`Camera.look_at` does,
 with ``+z`` up; the browser's camera then follows the mouse.
@@ -37,7 +38,8 @@ def _viser():
     try:
         import viser
     except ImportError as err:
-        raise ImportError("the viewer needs viser: pip install viser (in a torchsim checkout: pip install -e '.[viewer]')") from err
+        raise ImportError("the viewer needs viser: pip install viser "
+                          "(in a torchsim checkout: pip install -e '.[viewer]')") from err
     return viser
 
 
@@ -101,6 +103,23 @@ def _frame(value, env: int, count: int, width: int, label: str) -> np.ndarray:
         raise ValueError(f"{label} must be ({count}, {width}) or (B, {count}, {width}) for this scene's {count} mocap "
                          f"bodies, got {tuple(value.shape)}")
     return (value if value.ndim == 2 else value[env]).numpy()
+
+
+def mocap_track(mocap, frames: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """The mocap bodies' positions ``(frames, count, 3)`` and unit quaternions ``(frames, count, 4)`` (float64
+    numpy) of a trajectory's ``mocap = (mocap_pos, mocap_quat)``: each given for every frame ``(T, K, .)`` or
+    once for all ``(K, .)``; ``None`` keeps the scene's model poses."""
+    if mocap is None:
+        return np.empty((frames, 0, 3)), np.empty((frames, 0, 4))
+    track = []
+    for value, width, label in zip(mocap, (3, 4), ("mocap_pos", "mocap_quat")):
+        value = torch.as_tensor(value).detach().cpu().double()
+        value = value.expand(frames, *value.shape) if value.ndim == 2 else value
+        if value.shape != (frames, count, width):
+            raise ValueError(f"{label} must be ({count}, {width}) or (T, {count}, {width}) for this scene's {count} "
+                             f"mocap bodies over the trajectory's T = {frames} frames, got {tuple(value.shape)}")
+        track.append(value.numpy())
+    return track[0], track[1] / np.linalg.norm(track[1], axis=-1, keepdims=True)
 
 
 def body_poses(poses, env: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -194,47 +213,55 @@ class Viewer:
         or ``(B, K, 3)``, ``(B, K, 4)`` per env (the System's, which the step reads: ``env.sys.mocap_pos``); one
         left out keeps the mocap bodies' last poses."""
         x_pos, x_quat = body_poses(poses, env)
-        if mocap_pos is not None:
-            mocap_pos = _frame(mocap_pos, env, len(self.mocap), 3, "mocap_pos")
-        if mocap_quat is not None:
-            mocap_quat = _frame(mocap_quat, env, len(self.mocap), 4, "mocap_quat")
-            mocap_quat = mocap_quat / np.linalg.norm(mocap_quat, axis=-1, keepdims=True)
-        with self.server.atomic():
-            for b, handle in enumerate(self.bodies):
-                handle.position, handle.wxyz = x_pos[0, b], x_quat[0, b]
-            for k, handle in enumerate(self.mocap):
-                if mocap_pos is not None:
-                    handle.position = mocap_pos[k]
-                if mocap_quat is not None:
-                    handle.wxyz = mocap_quat[k]
+        count = len(self.mocap)
+        mocap_pos = (np.array([h.position for h in self.mocap]).reshape(count, 3) if mocap_pos is None
+                     else _frame(mocap_pos, env, count, 3, "mocap_pos"))
+        mocap_quat = (np.array([h.wxyz for h in self.mocap]).reshape(count, 4) if mocap_quat is None
+                      else _frame(mocap_quat, env, count, 4, "mocap_quat"))
+        self._show(x_pos[0], x_quat[0], mocap_pos, mocap_quat / np.linalg.norm(mocap_quat, axis=-1, keepdims=True))
 
-    def play(self, poses, dt: float, loop: bool = False) -> None:
-        """Show a trajectory ``(x_pos (T, N, 3), x_quat (T, N, 4))`` in real time (``dt`` seconds per frame)."""
+    def play(self, poses, dt: float, loop: bool = False, mocap=None) -> None:
+        """Show a trajectory ``(x_pos (T, N, 3), x_quat (T, N, 4))`` in real time (``dt`` seconds per frame), the
+        mocap bodies at ``mocap = (mocap_pos, mocap_quat)`` (:func:`mocap_track`)."""
         import time
 
-        x_pos, x_quat = body_poses(poses)
+        frames = self._frames(poses, mocap)
         while True:
             start = time.perf_counter()
-            for t in range(len(x_pos)):
-                self.update((x_pos[t], x_quat[t]))
+            for t, frame in enumerate(frames):
+                self._show(*frame)
                 time.sleep(max(0.0, start + (t + 1) * dt - time.perf_counter()))
             if not loop:
                 return
             start = time.perf_counter()
 
-    def to_html(self, poses, dt: float) -> str:
+    def to_html(self, poses, dt: float, mocap=None) -> str:
         """One self-contained HTML page (viser's client with the recording inlined) playing ``poses`` (a State:
         one frame; or ``(x_pos, x_quat)``: ``(T, N, ...)`` frames ``dt`` seconds apart, on a loop with a
-        playback bar)."""
-        x_pos, x_quat = body_poses(poses)
-        self.update((x_pos[0], x_quat[0]))
+        playback bar), the mocap bodies at ``mocap = (mocap_pos, mocap_quat)`` (:func:`mocap_track`)."""
+        frames = self._frames(poses, mocap)
+        self._show(*frames[0])
         serializer = self.server.get_scene_serializer()
-        for t in range(1, len(x_pos)):
+        for frame in frames[1:]:
             serializer.insert_sleep(dt)
-            self.update((x_pos[t], x_quat[t]))
-        if len(x_pos) > 1:
+            self._show(*frame)
+        if len(frames) > 1:
             serializer.insert_sleep(dt)
         return serializer.as_html()
+
+    def _frames(self, poses, mocap) -> list:
+        """Per frame of a trajectory: body positions and quaternions, mocap positions and quaternions."""
+        x_pos, x_quat = body_poses(poses)
+        return list(zip(x_pos, x_quat, *mocap_track(mocap, len(x_pos), len(self.mocap))))
+
+    def _show(self, x_pos, x_quat, mocap_pos, mocap_quat) -> None:
+        """One frame's poses (numpy, unit quaternions): ``(N, 3)``, ``(N, 4)`` and ``(K, 3)``, ``(K, 4)`` (or
+        ``(0, .)``: the mocap bodies stay where they are)."""
+        with self.server.atomic():
+            for handle, position, wxyz in zip(self.bodies, x_pos, x_quat):
+                handle.position, handle.wxyz = position, wxyz
+            for handle, position, wxyz in zip(self.mocap, mocap_pos, mocap_quat):
+                handle.position, handle.wxyz = position, wxyz
 
     def _quiet(self):
         """Viser prints its banner whatever ``verbose`` says: swallow stdout unless verbose."""
@@ -246,9 +273,10 @@ class Viewer:
 
 
 def save_html(scene, poses, path, dt: float = 0.05, eye=None, target=None, fovy: float = 45.0,
-              plane_extent: float = PLANE_EXTENT) -> pathlib.Path:
+              plane_extent: float = PLANE_EXTENT, mocap=None) -> pathlib.Path:
     """Write ``poses`` (a ``torchsim.State``'s env 0, or a trajectory ``(x_pos (T, N, 3), x_quat (T, N, 4))``
-    ``dt`` seconds apart) of ``scene`` to one HTML file that opens in a browser without torchsim (viser's client
+    ``dt`` seconds apart; the mocap bodies at ``mocap = (mocap_pos, mocap_quat)``, :func:`mocap_track`) of
+    ``scene`` to one HTML file that opens in a browser without torchsim (viser's client
     and the recording inlined; a local server for the duration of the call only, on ``127.0.0.1``).
 
     ``eye``/``target``/``fovy``: the initial camera (default: :meth:`Viewer.frame` on the first frame)."""
@@ -258,7 +286,7 @@ def save_html(scene, poses, path, dt: float = 0.05, eye=None, target=None, fovy:
             viewer.frame(None, fovy, body_poses(poses))
         else:
             viewer.set_camera(eye, body_poses(poses)[0][0].mean(0) if target is None else target, fovy)
-        html = viewer.to_html(poses, dt)
+        html = viewer.to_html(poses, dt, mocap)
     finally:
         viewer.close()
     path = pathlib.Path(path)
@@ -282,5 +310,5 @@ def trajectory(system, qpos, batch: int = 256) -> tuple[torch.Tensor, torch.Tens
     return torch.cat(pos), torch.cat(quat)
 
 
-__all__ = ["PLANE_EXTENT", "Viewer", "body_poses", "geom_mesh", "is_loopback", "save_html", "scene_geom_mesh",
-           "trajectory"]
+__all__ = ["PLANE_EXTENT", "Viewer", "body_poses", "geom_mesh", "is_loopback", "mocap_track", "save_html",
+           "scene_geom_mesh", "trajectory"]
