@@ -25,10 +25,24 @@ DEFAULTS = {"checkpoint": "???", "episodes": None, "max_steps": None, "video": F
             "physics": None}
 
 
+def parse(argv: list[str]):
+    """The ``key=value`` arguments over :data:`DEFAULTS`; ``-h``/``--help`` prints the usage, and an argument that
+    is not ``key=value`` for one of its keys, or no checkpoint, exits naming it."""
+    if {"-h", "--help"} & set(argv):
+        print(__doc__)
+        raise SystemExit(0)
+    keys = ", ".join(DEFAULTS)
+    for arg in argv:
+        if arg.partition("=")[0] not in DEFAULTS or "=" not in arg:
+            raise SystemExit(f"torchsim.evaluate: '{arg}' is not key=value for one of its keys ({keys})")
+    args = OmegaConf.merge(OmegaConf.create(DEFAULTS), OmegaConf.from_cli(argv))
+    if OmegaConf.is_missing(args, "checkpoint"):
+        raise SystemExit("torchsim.evaluate: give the policy to run, checkpoint=<run>/checkpoints/last.pt")
+    return args
+
+
 def main(argv: list[str]) -> dict:
-    args = OmegaConf.create(DEFAULTS)
-    OmegaConf.set_struct(args, True)  # unknown keys fail
-    args = OmegaConf.merge(args, OmegaConf.from_cli(argv))
+    args = parse(argv)
     ckpt = load_checkpoint(args.checkpoint, args.device)
     cfg = OmegaConf.create(ckpt["cfg"])
     trained_on = cfg.get("physics", "torchsim")

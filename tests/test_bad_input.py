@@ -199,3 +199,16 @@ def test_step_kernel_refuses_a_state_whose_fields_disagree_on_batch(field, messa
     stepper(state, ctrl)
     with pytest.raises(ValueError, match=message):
         stepper(state._replace(**{field: getattr(state, field)[:1]}), ctrl)
+
+
+@pytest.mark.parametrize("argv,message", [
+    (["checkpoint=x.pt", "episode=3"], r"'episode=3' is not key=value for one of its keys \(checkpoint, episodes"),
+    (["x.pt"], "'x.pt' is not key=value"),
+    ([], "give the policy to run, checkpoint="),
+])
+def test_evaluate_names_a_bad_argument(argv, message):
+    """``python -m torchsim.evaluate`` with a misspelt key, a bare path or no checkpoint exits saying which."""
+    from torchsim.algos.evaluate import main
+
+    with pytest.raises(SystemExit, match=message):
+        main(argv)
