@@ -1,5 +1,5 @@
 """Evaluate (and render) a trained policy: ``python -m torchsim.evaluate checkpoint=<run>/checkpoints/last.pt
-[episodes=N] [max_steps=N] [video=true] [device=cpu] [seed=N] [physics=torchsim|mujoco]``.
+[episodes=N] [max_steps=N] [video=true] [device=cpu] [seed=N] [physics=torchsim|mujoco] [mujoco_substeps=N]``.
 
 Prints the deterministic policy's mean return and episode length over ``episodes`` envs (default: as many as the
 run's own evaluations, ``eval.episodes``) (and, for goal-reaching
@@ -8,7 +8,8 @@ layouts of ``env.eval_split``); ``seed`` fixes the episodes' start states (a run
 ``eval.seed``); ``video=true`` writes ``eval.gif`` of env 0 next to the checkpoint's run dir (for navigation: the
 map from above beside the depth view). ``physics=mujoco`` runs the same task code on MuJoCo C's
 physics (``torchsim.execution.mujoco``): a policy trained in torchsim, evaluated in MuJoCo (default: the physics it
-trained on).
+trained on); ``mujoco_substeps=N`` splits MuJoCo's model timestep into N steps, the control held (default: as the run
+trained, else 1).
 """
 
 import pathlib
@@ -22,7 +23,7 @@ from torchsim.algos.evaluation import evaluate
 from torchsim.algos.outputs import video
 
 DEFAULTS = {"checkpoint": "???", "episodes": None, "max_steps": None, "video": False, "device": "cpu", "seed": None,
-            "physics": None}
+            "physics": None, "mujoco_substeps": None}
 
 
 def parse(argv: list[str]):
@@ -47,11 +48,16 @@ def main(argv: list[str]) -> dict:
     cfg = OmegaConf.create(ckpt["cfg"])
     trained_on = cfg.get("physics", "torchsim")
     cfg.physics = args.physics or trained_on
+    if args.mujoco_substeps is not None:
+        if cfg.physics != "mujoco":
+            raise SystemExit("torchsim.evaluate: mujoco_substeps splits MuJoCo's step: it needs physics=mujoco")
+        cfg.mujoco_substeps = args.mujoco_substeps
     env = make_env(cfg, args.episodes or cfg.eval.episodes, args.device)
     actor = load_policy(ckpt, env, args.device)
     ev = evaluate(env, actor, args.max_steps or cfg.eval.max_steps, record=args.video, seed=args.seed)
     result = {"env": cfg.env.name, "algo": cfg.algo.name, "env_steps_trained": ckpt["counters"]["env_steps"],
               "trained_on": trained_on, "physics": cfg.physics,
+              **({"mujoco_substeps": cfg.get("mujoco_substeps", 1)} if cfg.physics == "mujoco" else {}),
               "return_mean": ev.ret.mean().item(), "return_std": ev.ret.std().item(),
               "episode_length_mean": ev.length.float().mean().item()}
     if ev.final_distance is not None:

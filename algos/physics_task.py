@@ -46,7 +46,7 @@ def make_base(cfg: DictConfig, num_envs: int, device, train: bool, like=None):
         stepper = like.base_env.stepper
     elif physics == "mujoco":
         probe = torchsim.envs.make(cfg.env.name, device=device, contact_model=contact_model)  # System, MuJoCo model
-        stepper = MujocoStepper(probe.base_sys, probe.mj_model)
+        stepper = MujocoStepper(probe.base_sys, probe.mj_model, substeps=cfg.get("mujoco_substeps", 1))
     else:
         stepper = "auto" if compiles(cfg, "physics") else "eager"
     base = torchsim.envs.make(cfg.env.name, num_envs=num_envs, device=device, episode_length=cfg.env.episode_length,

@@ -30,6 +30,33 @@ def test_step_is_mujocos_step():
     assert not after.diverged.any()
 
 
+def test_substeps_split_mujocos_step():
+    """With ``substeps=4`` one call is four ``mj_step`` s of a quarter of the model's timestep, the control held
+    (the Ant starts on the floor: contacts act); the caller's model keeps its timestep; a substep count that is not
+    a positive integer is refused."""
+    probe = torchsim.envs.make("ant", dtype=torch.float64)
+    dt = probe.mj_model.opt.timestep
+    stepper = MujocoStepper(probe.base_sys, probe.mj_model, threads=2, substeps=4)
+    assert probe.mj_model.opt.timestep == dt and stepper.model.opt.timestep == dt / 4
+    env = torchsim.envs.make("ant", num_envs=2, dtype=torch.float64, stepper=stepper)
+    ctrl = torch.linspace(-1, 1, 2 * 8, dtype=torch.float64).reshape(2, 8)
+    after = stepper(env.state, ctrl)
+    m = env.mj_model.__copy__()
+    m.opt.timestep = dt / 4
+    d = mujoco.MjData(m)
+    for b in range(2):
+        mujoco.mj_resetData(m, d)
+        d.qpos[:], d.qvel[:], d.ctrl[:] = env.state.q[b].numpy(), env.state.qd[b].numpy(), ctrl[b].numpy()
+        for _ in range(4):
+            mujoco.mj_step(m, d)
+        assert d.ncon > 0
+        np.testing.assert_allclose(after.q[b].numpy(), d.qpos, atol=1e-10)
+        np.testing.assert_allclose(after.qd[b].numpy(), d.qvel, atol=1e-9)
+    for bad in (0, 2.0, True):
+        with pytest.raises(ValueError, match="substeps must be a positive integer"):
+            MujocoStepper(probe.base_sys, probe.mj_model, substeps=bad)
+
+
 def test_env_runs_on_mujoco_and_flags_a_reset():
     """An env on MuJoCo's physics steps like any other; an env MuJoCo resets (speeds past its 1e10 bound) keeps
     its last state and is flagged, the others run on."""

@@ -1,5 +1,7 @@
 """MuJoCo C's physics behind a Stepper's call: ``state = stepper(state, ctrl)`` advances the same MJCF one
-``sys.timestep`` in MuJoCo (``mujoco.rollout``) instead of in torchsim.
+``sys.timestep`` in MuJoCo (``mujoco.rollout``) instead of in torchsim: one MuJoCo step, or ``substeps`` steps of
+``timestep / substeps`` with the control held (MuJoCo nearer its converged answer: on contact-rich models its own
+step is far from it, ``docs/transfer_gap.md``).
 
 An env built with ``stepper=MujocoStepper(...)`` runs its own observation, reward, termination and reset code on
 MuJoCo's physics, which is what a policy-transfer measure needs: the same task code on both simulators, the
@@ -13,6 +15,7 @@ envs or per env) are MuJoCo's ``mocap_pos``/``mocap_quat`` in every step; ``for_
 in them only.
 """
 
+import copy
 import dataclasses
 
 import mujoco
@@ -31,17 +34,25 @@ class MujocoStepper:
     Args:
         sys: the torchsim System of the same MJCF (it builds the returned States; ``stepper.sys``).
         model: MuJoCo's model of that MJCF (an env's ``mj_model``).
+        substeps: MuJoCo steps per ``sys.timestep`` (each ``timestep / substeps``, the control held); 1: MuJoCo
+            as the model is.
     """
 
     strategy = "mujoco"
 
-    def __init__(self, sys: System, model: mujoco.MjModel, threads: int | None = None):
+    def __init__(self, sys: System, model: mujoco.MjModel, threads: int | None = None, substeps: int = 1):
         if (model.nq, model.nv, model.nu, model.na) != (sys.nq, sys.nv, sys.nu, sys.na):
             raise ValueError(f"MujocoStepper: the MuJoCo model (nq, nv, nu, na) = "
                              f"{(model.nq, model.nv, model.nu, model.na)} is not the System's "
                              f"{(sys.nq, sys.nv, sys.nu, sys.na)}")
+        if not isinstance(substeps, int) or isinstance(substeps, bool) or substeps < 1:
+            raise ValueError(f"MujocoStepper: substeps must be a positive integer, got {substeps!r}")
+        if substeps > 1:
+            model = copy.deepcopy(model)  # the caller's model keeps its timestep
+            model.opt.timestep /= substeps
         self.sys = sys
         self.model = model
+        self.substeps = substeps
         self._datas = [mujoco.MjData(model) for _ in range(threads or torch.get_num_threads())]
         self._spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
         self._template = np.empty(mujoco.mj_stateSize(model, self._spec))
@@ -64,12 +75,13 @@ class MujocoStepper:
                      for x in (self.sys.mocap_pos, self.sys.mocap_quat)]
             control = np.concatenate((control, *mocap), -1)
             spec = spec | mujoco.mjtState.mjSTATE_MOCAP_POS | mujoco.mjtState.mjSTATE_MOCAP_QUAT
-        out = np.empty((batch, 1, start.shape[1]))
-        mujoco.rollout.rollout(self.model, self._datas, start, control[:, None, :], control_spec=int(spec), nstep=1,
-                               state=out)
+        out = np.empty((batch, self.substeps, start.shape[1]))
+        mujoco.rollout.rollout(self.model, self._datas, start, np.repeat(control[:, None, :], self.substeps, 1),
+                               control_spec=int(spec), nstep=self.substeps, state=out)
+        out = out[:, -1]
         as_tensor = lambda x: torch.as_tensor(x, dtype=self.sys.dtype, device=self.sys.device)  # noqa: E731
-        q, qd, act = (as_tensor(out[:, 0, part]) for part in (self._qpos, self._qvel, self._act))
-        stepped = torch.as_tensor(out[:, 0, 0] > 1.0, device=q.device)
+        q, qd, act = (as_tensor(out[:, part]) for part in (self._qpos, self._qvel, self._act))
+        stepped = torch.as_tensor(out[:, 0] > 1.0, device=q.device)
         ok = stepped & torch.isfinite(q).all(-1) & torch.isfinite(qd).all(-1) & torch.isfinite(act).all(-1)
         # an env MuJoCo reset (or left non-finite) keeps its last state and is flagged, as torchsim's own step
         # contains a divergence
