@@ -108,7 +108,7 @@ def _frame(value, env: int, count: int, width: int, label: str) -> np.ndarray:
 def mocap_track(mocap, frames: int, count: int) -> tuple[np.ndarray, np.ndarray]:
     """The mocap bodies' positions ``(frames, count, 3)`` and unit quaternions ``(frames, count, 4)`` (float64
     numpy) of a trajectory's ``mocap = (mocap_pos, mocap_quat)``: each given for every frame ``(T, K, .)`` or
-    once for all ``(K, .)``; ``None`` keeps the scene's model poses."""
+    once for all ``(K, .)``; ``None`` gives none, ``(frames, 0, .)``, and the mocap bodies stay where they are."""
     if mocap is None:
         return np.empty((frames, 0, 3)), np.empty((frames, 0, 4))
     track = []
