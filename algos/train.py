@@ -102,6 +102,17 @@ def prepare(cfg: DictConfig, ranks: Ranks = Ranks()) -> None:
     torch.manual_seed(cfg.seed + ranks.rank)
 
 
+def stopped_message(out_dir, overrides: list[str]) -> str:
+    """What a run stopped with Ctrl-C says: the command that continues it from its last checkpoint (the run's own
+    overrides, which a resumed run must repeat, and ``resume=``), or that it wrote none yet."""
+    last = pathlib.Path(out_dir) / "checkpoints" / "last.pt"
+    if not last.exists():
+        return "stopped (Ctrl-C) before the run's first checkpoint"
+    kept = [o for o in overrides if not o.startswith(("hydra.", "resume="))]
+    return ("stopped (Ctrl-C); continue from the last checkpoint with:\n  python -m torchsim.train "
+            + " ".join([*kept, f"resume={last}"]))
+
+
 @hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     out_dir = HydraConfig.get().runtime.output_dir
@@ -114,6 +125,9 @@ def main(cfg: DictConfig) -> None:
     except TrainingDiverged as err:
         print(f"training diverged: {err}", file=sys.stderr)
         sys.exit(1)
+    except KeyboardInterrupt:
+        print(stopped_message(out_dir, list(HydraConfig.get().overrides.task)), file=sys.stderr)
+        sys.exit(130)
 
 
 if __name__ == "__main__":

@@ -193,3 +193,38 @@ def test_an_env_continues_its_episodes_from_its_saved_state(name, options):
     outputs, _ = steps(twin, carried, actions)
     assert all((got == want).all() for got, want in zip(outputs, expected))
     assert sum(bool(out["done"].any()) for out in outputs) >= 2  # episodes ended, and restarted, on the way
+
+
+def test_ctrl_c_stops_a_run_with_the_command_that_continues_it(tmp_path):
+    """Ctrl-C (SIGINT) during training exits with status 130 and prints the command that resumes the run: its own
+    overrides and ``resume=`` its last checkpoint; the command, run, continues it to its budget."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from tiny_runs import TINY_PPO
+
+    overrides = [o for o in TINY_PPO if not o.startswith("budget.")] + ["budget.env_steps=10_000_000",
+                                                                          "checkpoint_every=1"]
+    run_dir = tmp_path / "run"
+    # as a terminal starts it: SIGINT raises KeyboardInterrupt (a process started in the background ignores it)
+    launch = ("import runpy, signal, sys; signal.signal(signal.SIGINT, signal.default_int_handler); "
+              "sys.argv = sys.argv[1:]; runpy.run_module('torchsim.train', run_name='__main__')")
+    proc = subprocess.Popen([sys.executable, "-c", launch, "torchsim.train", *overrides, f"hydra.run.dir={run_dir}"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 300
+    while not (run_dir / "checkpoints" / "last.pt").exists() and proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, stderr = proc.communicate(timeout=120)
+    assert proc.returncode == 130, stderr[-3000:]
+    command = stderr.strip().splitlines()[-1].split()
+    assert command[:3] == ["python", "-m", "torchsim.train"] and f"resume={run_dir}/checkpoints/last.pt" in command
+    assert set(overrides) <= set(command) and not any(c.startswith("hydra.") for c in command)
+    steps = load_checkpoint(run_dir / "checkpoints" / "last.pt")["counters"]["env_steps"]
+    resumed = [*command[3:], f"budget.env_steps={steps + 32}", f"hydra.run.dir={tmp_path / 'resumed'}"]
+    done = subprocess.run([sys.executable, "-m", "torchsim.train", *resumed], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert load_checkpoint(tmp_path / "resumed" / "checkpoints" / "last.pt")["counters"]["env_steps"] == steps + 32
