@@ -34,28 +34,21 @@ OTHER = {"torchsim": "mujoco", "mujoco": "torchsim"}
 def transfer(checkpoint: Path, episodes: int, seed: int, splits: list[int]) -> dict:
     """Mean returns of ``checkpoint``'s policy on the physics it trained on and on the other one; on MuJoCo also
     with its model timestep split into each of ``splits`` (``row["split"][n]``)."""
-    row = {"split": {}}
-    for which in ("trained", "other", *splits):
-        physics = [] if which == "trained" else [f"physics={OTHER[row['trained_on']]}"]
-        if isinstance(which, int):
-            if row["other"]["physics"] != "mujoco":
-                break
-            physics.append(f"mujoco_substeps={which}")
+    def run(label: str, *physics: str) -> dict:
         start = time.perf_counter()
         result = evaluate([f"checkpoint={checkpoint}", f"episodes={episodes}", f"seed={seed}", *physics])
-        row.setdefault("env", result["env"])
-        row.setdefault("algo", result["algo"])
-        row.setdefault("env_steps", result["env_steps_trained"])
-        row.setdefault("trained_on", result["trained_on"])
-        if isinstance(which, int):
-            row["split"][which] = result
-        else:
-            row[which] = result
-        steps = f" at dt/{which}" if isinstance(which, int) else ""
-        print(f"  {result['env']} on {result['physics']}{steps}: return {result['return_mean']:.0f} +- "
+        print(f"  {result['env']} on {result['physics']}{label}: return {result['return_mean']:.0f} +- "
               f"{result['return_std']:.0f}, length {result['episode_length_mean']:.0f} "
               f"({time.perf_counter() - start:.0f} s)", flush=True)
-    row["ratio"] = row["other"]["return_mean"] / row["trained"]["return_mean"]
+        return result
+
+    trained = run("")
+    other = OTHER[trained["trained_on"]]
+    row = {"env": trained["env"], "algo": trained["algo"], "env_steps": trained["env_steps_trained"],
+           "trained_on": trained["trained_on"], "trained": trained, "other": run("", f"physics={other}"),
+           "split": {n: run(f" at dt/{n}", "physics=mujoco", f"mujoco_substeps={n}") for n in splits}
+           if other == "mujoco" else {}}
+    row["ratio"] = row["other"]["return_mean"] / trained["return_mean"]
     return row
 
 
