@@ -1,15 +1,14 @@
-"""What the spring method's missing joint-space response costs: its joint solve (armature, damping, soft limits;
-``joint_space.inertia_and_damping``) run once as it is and once as ``joint_space.articulated_rate_solve``, on
-models whose passive rollouts miss MuJoCo where a limit stops a light link that carries a heavy one.
+"""What the spring method's missing joint-space response costs: passive rollouts on its default model and on the
+articulated model (``contact_model="articulated"``, ``torchsim.tree_solve``), for models that miss MuJoCo where a
+limit stops a light link that carries a heavy one.
 
-As it is, a dof impulse meets the inverse inertias of the dof's two bodies (``joint_space.hinge_rate_solve``'s
-``A``; slides one at a time): a limit stops the light link alone and the heavy link it carries stretches the joint
-spring between them and bounces back. The articulated solve takes every dof at once with ``A = M^-1``, ``M`` the
-joint-space inertia of the rigid tree at the substep's start (``torchsim.articulation``, equal to MuJoCo's
-``mj_fullM`` less armature: ``tests/test_articulation.py``), and moves each body by its Jacobian times the dofs'
-rate change: the response the articulation has with rigid joints, as MuJoCo's constraint solve sees it. The rest
-of the step (springs, contacts) is unchanged. It is not in the default step: the locomotion models' rollouts do not
-move with it, their gap being the contacts' (``docs/physics.md``, known limits).
+On the default model a dof impulse meets the inverse inertias of the dof's two bodies
+(``joint_space.hinge_rate_solve``'s ``A``; slides one at a time): a limit stops the light link alone and the heavy
+link it carries stretches the joint spring between them and bounces back. The articulated model solves every dof
+at once through ``M^-1``, ``M`` the joint-space inertia of the rigid tree at the substep's start
+(``torchsim.articulation``, equal to MuJoCo's ``mj_fullM`` less armature: ``tests/test_articulation.py``), with
+the joints held at the velocity level: the response the articulation has with rigid joints, as MuJoCo's
+constraint solve sees it.
 
 Rollout and verdict quantities: ``studies/check_third_party.py``'s (qpos0, random velocities, 0.5 s; torchsim's
 RMS error against MuJoCo at dt/4 over MuJoCo's own at dt). One env, float64, eager.
@@ -19,7 +18,6 @@ RMS error against MuJoCo at dt/4 over MuJoCo's own at dt). One env, float64, eag
 """
 
 import argparse
-import contextlib
 import sys
 import tempfile
 import time
@@ -30,7 +28,6 @@ import torch
 
 import torchsim
 from check_third_party import HORIZON, SEED, VEL_STD, fetch, load, mujoco_rollout, q_error, torchsim_rollout
-from torchsim import articulation, joint_space
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from test_soft_limits import light_link_carrying_a_heavy_one  # noqa: E402  (its strict xfail's model)
@@ -41,18 +38,6 @@ MODELS = {
     "boxhead": (("dm_control", "1.0.50"), "dm_control/locomotion/soccer/assets/boxhead/boxhead.xml"),
     "spot_arm": (("robosuite", "1.5.2"), "robosuite/models/assets/robots/spot_arm/robot.xml"),
 }
-
-
-@contextlib.contextmanager
-def joint_solve(solve):
-    """``joint_space.inertia_and_damping`` replaced by ``solve`` inside the block (the spring method calls it
-    through the module)."""
-    original = joint_space.inertia_and_damping
-    joint_space.inertia_and_damping = solve
-    try:
-        yield
-    finally:
-        joint_space.inertia_and_damping = original
 
 
 def model_path(name: str, cache: Path, scratch: Path) -> Path:
@@ -70,14 +55,12 @@ def main():
     parser.add_argument("--cache", type=Path, default=Path.home() / ".cache" / "torchsim" / "third_party")
     args = parser.parse_args()
     torch.set_num_threads(1)
-    print("| model | substeps | MuJoCo dt vs dt/4 | torchsim, as it is | ratio | articulated | ratio |")
+    print("| model | substeps | MuJoCo dt vs dt/4 | torchsim, default | ratio | articulated | ratio |")
     print("|---|---:|---:|---:|---:|---:|---:|")
     with tempfile.TemporaryDirectory() as scratch:
         for name in args.models:
             path = model_path(name, args.cache, Path(scratch))
             m = torchsim.io_mjcf.mujoco_model(path, 64)
-            _, system, _ = load(path, max_hull_vertices=64)
-            system = articulation.with_tree(system)
             steps = round(HORIZON / m.opt.timestep)
             qd0 = np.random.default_rng(SEED).normal(0.0, VEL_STD, m.nv)
             fine_model = torchsim.io_mjcf.mujoco_model(path, 64)
@@ -85,10 +68,10 @@ def main():
             fine, _ = mujoco_rollout(fine_model, qd0, steps, 4)
             mj = q_error(m, mujoco_rollout(m, qd0, steps, 1)[0], fine)
             errors = []
-            for solve in (joint_space.inertia_and_damping, joint_space.articulated_rate_solve):
+            for contact_model in ("impulse", "articulated"):
                 t0 = time.perf_counter()
-                with joint_solve(solve):
-                    ours, diverged = torchsim_rollout(system, m, qd0, steps, float("inf"))
+                _, system, _ = load(path, max_hull_vertices=64, contact_model=contact_model)
+                ours, diverged = torchsim_rollout(system, m, qd0, steps, float("inf"))
                 errors.append(float("nan") if diverged else q_error(m, ours, fine))
                 print(f"  {name}: RMS error {errors[-1]:.3e} in {time.perf_counter() - t0:.0f} s", file=sys.stderr)
             print(f"| {name} | {system.substeps} | {mj:.2e} | {errors[0]:.2e} | {errors[0] / mj:.2f} | {errors[1]:.2e} | "

@@ -288,8 +288,8 @@ def main():
         "`ts`: torchsim vs MuJoCo at dt/4; `mj`: MuJoCo dt vs dt/4; RMS of qpos over 0.5 s from qpos0 with "
         "N(0, 0.1) start velocities, zero controls; PASS: ts <= max(2 mj, 1e-3) without contact, max(5 mj, 1e-3) "
         "with contact. `soft`, `articulated`: the same torchsim rollout with `load_mjcf(contact_model=...)` "
-        "(MuJoCo's soft contact normal, `torchsim/soft_contacts.py`; solved through the articulation, "
-        "`torchsim/articulated_contacts.py`), for the models with contact. dm_control's lqr.xml and "
+        "(MuJoCo's soft contact normal, `torchsim/soft_contacts.py`; velocities, limits and contacts solved "
+        "through the articulation, `torchsim/tree_solve.py`), for the models with contact. dm_control's lqr.xml and "
         "swimmer.xml are templates (see the docstring).",
         summary(rows), table(rows)])
     print("\n" + text)

@@ -85,14 +85,20 @@ def test_resting_box_holds_its_weight_like_mujoco(contact_model):
 
 @pytest.fixture(scope="module", params=["soft", "articulated"])
 def ant_at_rest(request):
-    return _settled(ANT, 300, request.param, keyframe=True)
+    return request.param, _settled(ANT, 300, request.param, keyframe=True)
+
+
+# the share of the largest that torchsim's friction and hinge torques at rest may miss MuJoCo's by: the soft
+# contacts act on the touching links alone and leave the joint springs to carry the rest; the articulated model
+# solves joints, limits and contacts in MuJoCo's one system (docstrings below)
+REST_TOLERANCE = {"soft": 0.1, "articulated": 0.01}
 
 
 def test_resting_ant_feet_carry_mujocos_normal_forces(ant_at_rest):
     """The Ant settled from its home pose (3 s, zero control, soft or articulated contacts): each foot's normal
     force is MuJoCo's within 1 % (measured: 2.234 N each on both, MuJoCo 2.234), and the four carry the Ant's
     weight."""
-    ours, theirs, m, *_ = ant_at_rest
+    _, (ours, theirs, m, *_) = ant_at_rest
     assert sorted(ours) == sorted(theirs)
     for foot, force in theirs.items():
         print(f"{foot}: torchsim {np.round(ours[foot], 3)}, MuJoCo {np.round(force, 3)} N")
@@ -101,23 +107,24 @@ def test_resting_ant_feet_carry_mujocos_normal_forces(ant_at_rest):
 
 
 def test_resting_ant_feet_carry_mujocos_friction(ant_at_rest):
-    """Each foot's friction is MuJoCo's within 10 % (measured: 1.124 N in the leg's vertical plane on soft contacts,
-    1.083 N on articulated ones, MuJoCo 1.111 N). It is the step's mean: the friction of one soft substep alone is
-    1.37 N, 35 degrees off that plane, and alternates from substep to substep (``torchsim.contact_forces``)."""
-    ours, theirs, *_ = ant_at_rest
+    """Each foot's friction is MuJoCo's within 10 % on soft contacts, 1 % on articulated ones (measured: 1.124 N in
+    the leg's vertical plane on soft contacts, 1.1114 N on articulated ones, MuJoCo 1.1114 N). On soft contacts it
+    is the step's mean: the friction of one soft substep alone is 1.37 N, 35 degrees off that plane, and alternates
+    from substep to substep (``torchsim.contact_forces``)."""
+    contact_model, (ours, theirs, *_) = ant_at_rest
     for foot, force in theirs.items():
-        assert np.linalg.norm(ours[foot][:2] - force[:2]) < 0.1 * np.linalg.norm(force[:2])
+        assert np.linalg.norm(ours[foot][:2] - force[:2]) < REST_TOLERANCE[contact_model] * np.linalg.norm(force[:2])
 
 
 def test_resting_ant_hinges_carry_mujocos_constraint_torques(ant_at_rest):
     """The torque the contacts put on each hinge, ``J^T f`` (MuJoCo's Jacobians at torchsim's settled pose), against
     MuJoCo's ``qfrc_constraint`` at its own (no joint limit is active there, so that is its contacts' alone): the
-    ankles carry 0.1294 N m (soft) and 0.1132 (articulated) where MuJoCo's carry 0.1234, the hips 0 as MuJoCo's
-    (each leg's friction lies in its plane). Within 10 % of the largest: the ankles settle 0.008 rad off MuJoCo's
-    (the Ant rests 1.8 mm low, ``tests/test_rest_heights.py``), which moves their lever, and the friction that
-    holds the splayed legs at rest, which no simulator pins down uniquely (MuJoCo's is its regularised solve's), is
-    1.2 % over MuJoCo's (soft) and 2.5 % under (articulated). The free root's row is the Ant's weight."""
-    _, _, m, d, sys, state, ctrl = ant_at_rest
+    ankles carry 0.1294 N m (soft) and 0.1233 (articulated) where MuJoCo's carry 0.1234, the hips 0 as MuJoCo's
+    (each leg's friction lies in its plane). Soft contacts within 10 % of the largest: the ankles settle 0.008 rad
+    off MuJoCo's (the Ant rests 1.8 mm low, ``tests/test_rest_heights.py``), which moves their lever, and the
+    friction that holds the splayed legs at rest is 1.2 % over MuJoCo's. Articulated ones within 1 %: their torso
+    rests 24 um from MuJoCo's. The free root's row is the Ant's weight."""
+    contact_model, (_, _, m, d, sys, state, ctrl) = ant_at_rest
     forces = torchsim.contact_forces(sys, state, ctrl)
     at_ours = mujoco.MjData(m)
     at_ours.qpos[:] = state.q[0].numpy()
@@ -130,7 +137,7 @@ def test_resting_ant_hinges_carry_mujocos_constraint_torques(ant_at_rest):
     theirs = d.qfrc_constraint
     print(f"hinges: torchsim {np.round(ours[6:], 4)}, MuJoCo {np.round(theirs[6:], 4)} N m")
     assert not any(d.efc_type == mujoco.mjtConstraint.mjCNSTR_LIMIT_JOINT)
-    np.testing.assert_allclose(ours[6:], theirs[6:], atol=0.1 * np.abs(theirs[6:]).max())
+    np.testing.assert_allclose(ours[6:], theirs[6:], atol=REST_TOLERANCE[contact_model] * np.abs(theirs[6:]).max())
     assert ours[2] == pytest.approx(theirs[2], rel=0.01)
 
 

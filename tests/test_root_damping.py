@@ -27,12 +27,16 @@ BALL = """
 MASS, I_ZZ, I_XX = 2.0, 2.0 / 3 * (0.1**2 + 0.2**2), 2.0 / 3 * (0.2**2 + 0.3**2)  # the box's, about its centre
 
 
-def _rollout(xml, qpos, qvel, seconds, method):
+# each method, and the spring method's articulated model (the tree's solve: torchsim.tree_solve)
+SOLVES = [(method, "impulse") for method in METHODS] + [("spring", "articulated")]
+
+
+def _rollout(xml, qpos, qvel, seconds, method, contact_model="impulse"):
     """MuJoCo's and torchsim's (float64, eager) ``qpos, qvel`` at every step: 2 arrays each ``(T, nq | nv)``."""
     m = mujoco.MjModel.from_xml_string(xml)
     d = mujoco.MjData(m)
     d.qpos[:], d.qvel[:] = qpos, qvel
-    sys = torchsim.load_mjcf(xml, method=method, dtype=F64)
+    sys = torchsim.load_mjcf(xml, method=method, dtype=F64, contact_model=contact_model)
     state = torchsim.init(sys, torch.as_tensor(d.qpos[None].copy()), torch.as_tensor(d.qvel[None].copy()))
     ctrl = torch.zeros(1, 0, dtype=F64)
     mj, ours = [], []
@@ -44,13 +48,13 @@ def _rollout(xml, qpos, qvel, seconds, method):
     return np.array(mj), np.array(ours)
 
 
-@pytest.mark.parametrize("method", METHODS)
-def test_free_body_damping_decays_exponentially(method):
+@pytest.mark.parametrize("method, contact_model", SOLVES)
+def test_free_body_damping_decays_exponentially(method, contact_model):
     """Sliding at (1, 0.5, 0) m/s and spinning at 3 rad/s about its z axis, damping 0.5 and armature 0.1 on every
     dof: the speeds decay as ``exp(-d t / (m + J))`` and ``exp(-d t / (I_zz + J))`` (armature adds to every dof's
     inertia), over 1 s, and as MuJoCo's."""
     xml = FREE.format(dt=0.001, damping=0.5, armature=0.1, stiffness=0, com="0 0 0")
-    mj, ours = _rollout(xml, [0, 0, 1, 1, 0, 0, 0], [1, 0.5, 0, 0, 0, 3], 1.0, method)
+    mj, ours = _rollout(xml, [0, 0, 1, 1, 0, 0, 0], [1, 0.5, 0, 0, 0, 3], 1.0, method, contact_model)
     t = 1.0
     lin, ang = np.exp(-0.5 * t / (MASS + 0.1)), np.exp(-0.5 * t / (I_ZZ + 0.1))
     assert np.allclose(ours[-1, 7:], [lin, 0.5 * lin, 0, 0, 0, 3 * ang], rtol=5e-3, atol=1e-9)
@@ -69,14 +73,14 @@ def test_free_body_damping_off_its_centre(method):
     assert np.abs(ours[:, 7:] - mj[:, 7:]).max() < 1e-3
 
 
-@pytest.mark.parametrize("method", METHODS)
-def test_ball_joint_oscillates_with_armature_and_stiffness(method):
+@pytest.mark.parametrize("method, contact_model", SOLVES)
+def test_ball_joint_oscillates_with_armature_and_stiffness(method, contact_model):
     """Turned 0.3 rad about x and released: a torsion pendulum of stiffness 2 N m/rad on ``I_xx + J`` (armature
     0.05), damping 0.02. Period ``2 pi sqrt((I_xx + J) / k)`` (1.642 s) from the rotation's zero crossings, as
     MuJoCo's to 0.5 %, and the path (quaternions) within 5e-4 of MuJoCo's over 1.7 s; its amplitude after one
     period within 1 % of MuJoCo's."""
     xml = BALL.format(damping=0.02, armature=0.05, stiffness=2.0)
-    mj, ours = _rollout(xml, [np.cos(0.15), np.sin(0.15), 0, 0], [0, 0, 0], 1.7, method)
+    mj, ours = _rollout(xml, [np.cos(0.15), np.sin(0.15), 0, 0], [0, 0, 0], 1.7, method, contact_model)
     assert np.abs(ours[:, :4] - mj[:, :4]).max() < 5e-4
 
     def period(x):

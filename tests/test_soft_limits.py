@@ -16,7 +16,6 @@ import torch
 
 import torchsim
 from models import F64
-from torchsim import articulation, joint_space
 
 MJ_DT = 1e-4  # MuJoCo's reference step: its release rates are within 0.2% of its own at 0.02 ms
 STEP = 0.002  # torchsim's step, 4 substeps of 0.5 ms (the engine's default substep)
@@ -195,10 +194,10 @@ def light_link_carrying_a_heavy_one(light_mass):
     </body></worldbody></mujoco>"""
 
 
-def rollout_errors(xml, duration, prepare=lambda sys: sys):
-    """RMS over ``duration`` and the two angles of torchsim's error (default substeps; the System as ``prepare``
-    returns it) and of MuJoCo at ``STEP``, both against MuJoCo at ``STEP / 4`` (``studies/check_third_party.py``'s
-    verdict quantities)."""
+def rollout_errors(xml, duration, contact_model="impulse"):
+    """RMS over ``duration`` and the two angles of torchsim's error (default substeps, ``load_mjcf``'s
+    ``contact_model``) and of MuJoCo at ``STEP``, both against MuJoCo at ``STEP / 4``
+    (``studies/check_third_party.py``'s verdict quantities)."""
     runs = []
     for factor in (1, 4):
         m = mujoco.MjModel.from_xml_string(xml)
@@ -210,7 +209,7 @@ def rollout_errors(xml, duration, prepare=lambda sys: sys):
                 mujoco.mj_step(m, d)
             q.append(d.qpos.copy())
         runs.append(np.array(q))
-    sys = prepare(torchsim.load_mjcf(xml, dtype=F64))
+    sys = torchsim.load_mjcf(xml, dtype=F64, contact_model=contact_model)
     state = torchsim.init(sys, torch.zeros(1, 2, dtype=F64), torch.zeros(1, 2, dtype=F64))
     q = []
     for _ in range(round(duration / STEP)):
@@ -237,12 +236,12 @@ def test_limit_stops_a_link_carrying_a_heavier_one_as_mujoco(light_mass):
     assert ts <= 2.0 * mj
 
 
-def test_articulated_solve_stops_a_link_carrying_a_heavier_one_as_mujoco(monkeypatch):
-    """``joint_space.articulated_rate_solve`` in the spring step's place of the joint solve: with the limit's impulse
-    meeting the rigid articulation (``M^-1``), the 0.1 kg link the default misses on (above) tracks MuJoCo within
-    the same bound; measured 0.50x MuJoCo's own timestep sensitivity (the default: 13x)."""
+def test_articulated_model_stops_a_link_carrying_a_heavier_one_as_mujoco():
+    """The articulated model (``contact_model="articulated"``, ``torchsim.tree_solve``): with the limit's impulse
+    meeting the rigid articulation (``M^-1``) and the joints held at the velocity level, the 0.1 kg link the
+    default misses on (above) tracks MuJoCo within the same bound; measured 0.52x MuJoCo's own timestep
+    sensitivity (the default: 13x)."""
     xml = light_link_carrying_a_heavy_one(0.1)
-    monkeypatch.setattr(joint_space, "inertia_and_damping", joint_space.articulated_rate_solve)
-    ts, mj = rollout_errors(xml, 0.5, articulation.with_tree)
+    ts, mj = rollout_errors(xml, 0.5, "articulated")
     print(f"articulated: torchsim {ts:.3e} rad, MuJoCo dt vs dt/4 {mj:.3e} rad, ratio {ts / mj:.2f}")
     assert ts <= 2.0 * mj

@@ -109,14 +109,20 @@ def articulation(sys: System, bodies: Bodies, frames: JointFrames, rot: torch.Te
     return Articulation(inertia, ang_jac, vel_jac)
 
 
+def column_armature(sys: System) -> torch.Tensor:
+    """Every column's armature ``(C, 1 | B)`` [kg m^2 | kg]: the dof's, then each ball joint's and free joint's on
+    all of its dofs."""
+    return torch.cat((lanes.param(sys.dof_armature, 1), lanes.param(sys.ball_armature, 1).repeat_interleave(3, 0),
+                      lanes.param(sys.free_armature, 1).repeat_interleave(6, 0)))
+
+
 def with_armature(sys: System, inertia: torch.Tensor) -> torch.Tensor:
     """The joint-space inertia ``inertia (C, C, B)`` with every dof's armature on its diagonal (MuJoCo's ``M``): the
     rotors an impulse on the bodies also turns."""
     n_columns, batch = inertia.shape[0], inertia.shape[-1]
-    armature = torch.cat((lanes.param(sys.dof_armature, 1), lanes.param(sys.ball_armature, 1).repeat_interleave(3, 0),
-                          lanes.param(sys.free_armature, 1).repeat_interleave(6, 0)))
     diagonal = torch.arange(n_columns, device=inertia.device) * (n_columns + 1)
-    return inertia.flatten(0, 1).index_add(0, diagonal, armature.expand(-1, batch)).view(n_columns, n_columns, batch)
+    return inertia.flatten(0, 1).index_add(0, diagonal, column_armature(sys).expand(-1, batch)).view(
+        n_columns, n_columns, batch)
 
 
 def move(bodies: Bodies, model: Articulation, rate_change: torch.Tensor) -> Bodies:

@@ -22,8 +22,8 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from torchsim import articulation, lanes, spatial, rigid
-from torchsim.kinematics import Bodies, JointFrames, dof_hinge_rows, dof_values, joint_frames
+from torchsim import lanes, spatial, rigid
+from torchsim.kinematics import Bodies, JointFrames, dof_hinge_rows, dof_values
 from torchsim.system import System
 from torchsim.tendons import impedance
 
@@ -218,6 +218,15 @@ def _friction_rows(sys: System, v: torch.Tensor) -> torch.Tensor:
     return torch.cat((hinges, tendons))
 
 
+def friction_columns(sys: System, n_columns: int) -> torch.Tensor:
+    """The frictional rows ``C (n_columns, F + G)`` of :func:`_hinge_friction` (the frictional hinges' unit columns,
+    then each frictional tendon's ``coef``) in the first ``D`` of ``n_columns`` columns (the articulation's, whose
+    first are the dofs, ``torchsim.articulation``), in :func:`hinge_friction_limits`' order."""
+    n_dof = sys.dof_flat.shape[0]
+    rows = _friction_rows(sys, torch.eye(n_dof, dtype=sys.dtype, device=sys.device))  # (F + G, D): C^T
+    return torch.cat((rows.T, rows.new_zeros(n_columns - n_dof, rows.shape[0])))
+
+
 def slide_inertia_and_damping(sys: System, before: Bodies, after: Bodies, axes: torch.Tensor, qd: torch.Tensor,
                               inv: rigid.InverseInertia, h: float, limits: LimitRows | None = None):
     """The same for slide dofs, one dof at a time: of the change ``dqd`` forces made, ``dqd / (1 + J w)`` is kept
@@ -289,40 +298,6 @@ def inertia_and_damping(sys: System, before: Bodies, after: Bodies, frames: Join
     if sys.root_passive:
         after = root_rate_solve(sys, before, after, frames, inv, h)
     return after, rates
-
-
-def articulated_rate_solve(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,
-                           h: float, q: torch.Tensor | None = None):
-    """:func:`inertia_and_damping` (same arguments and returns; ``sys`` with the tree's tables,
-    ``articulation.with_tree``) with every hinge and slide impulse meeting the rigid articulation
-    (:mod:`torchsim.articulation`) instead of the dof's two bodies: ``A`` is the dofs' block of ``M^-1`` at the
-    substep's start and the bodies move by ``J M^-1 mu``, so a limit stopping a light link stops the heavy link it
-    carries with it, as MuJoCo's constraint solve does. Dense in the tree's dofs (``C^2 N`` products to build
-    ``M``, one ``C x C`` solve per env); slides join the hinges' solve, so a frictional slide is refused."""
-    if sys.dof_friction_slides:
-        raise ValueError("articulated_rate_solve: dry friction on slide dofs is not supported")
-    model = articulation.articulation(sys, before, frames, inv.rot)
-    n_dof, batch = sys.dof_flat.shape[0], before.x_pos.shape[-1]
-    unit = torch.eye(model.inertia.shape[0], n_dof, dtype=model.inertia.dtype, device=model.inertia.device)
-    mobility = spatial.spd_solve(model.inertia, unit[:, :, None].expand(-1, -1, batch))  # (C, D, B): M^-1's dof columns
-    a = mobility[:n_dof]
-    a_flat = a.reshape(n_dof * n_dof, batch)
-    qd = dof_values(sys, frames.qd)
-    # the dofs' rates after the substep's forces, measured at its start's poses
-    qd_raw = dof_values(sys, joint_frames(sys, after._replace(x_pos=before.x_pos, x_quat=before.x_quat),
-                                          rot=inv.rot).qd)
-    armature = lanes.param(sys.dof_armature, 1).expand(n_dof, batch)
-    inertia = armature + h * lanes.param(sys.dof_damping, 1)
-    mat, rhs = _dof_system(a_flat, inertia, armature * qd, qd_raw)
-    if sys.dof_limits and q is not None:
-        mat, rhs = _limit_system(a_flat, a, inertia, armature * qd, qd_raw, spatial.spd_solve(mat, rhs),
-                                 limit_rows(sys, q, qd, h))
-    friction_h = hinge_friction_limits(sys, h)
-    mu = spatial.spd_solve(mat, rhs) if friction_h is None else _hinge_friction(sys, mat, a, rhs, qd_raw, friction_h)
-    after = articulation.move(after, model, (mobility * mu).sum(1))
-    if sys.root_passive:
-        after = root_rate_solve(sys, before, after, frames, inv, h)
-    return after, qd_raw + spatial.matvec(a, mu)
 
 
 def root_rate_solve(sys: System, before: Bodies, after: Bodies, frames: JointFrames, inv: rigid.InverseInertia,

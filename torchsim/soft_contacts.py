@@ -20,7 +20,7 @@ with ``R`` scaled by ``2 mu^2 (1 + mu^2)``: the normal is regularised by ``mu^2 
 
 The articulated contacts (``torchsim.articulated_contacts``) solve those edges themselves, as MuJoCo does: each edge
 a row with its own reference speed, the edges that would pull released by principal pivoting
-(:func:`pyramid_impulses`, :func:`nonnegative_solve`).
+(:func:`pyramid_rows`, :func:`nonnegative_solve`).
 """
 
 import torch
@@ -80,26 +80,21 @@ def pyramid_edges(con: Contacts) -> torch.Tensor:
     return torch.stack((n + mu * t1, n - mu * t1, n + mu * t2, n - mu * t2))
 
 
-def pyramid_impulses(sys: System, con: Contacts, inverse_inertia: torch.Tensor, v_e: torch.Tensor,
-                     v_e_start: torch.Tensor, h: float) -> torch.Tensor:
-    """Each edge's impulse ``(4, C, B)`` (>= 0, 0 where inactive) along :func:`pyramid_edges`, as MuJoCo's
-    constraint solve has it: the edges' speeds ``v_e`` after the other forces and ``v_e_start`` at the substep's
-    start ``(4, C, B)``, their inverse inertia ``(4C, 4C, B)`` (edge-major), each edge's reference built from its
-    point's depth and its own speed, each regularised by ``2 mu^2 (1 + mu^2) R`` (``4 R``: a frictionless point's
-    four copies of its normal act as one with ``R``). An elliptic cone's friction is solved on the same pyramid, its
-    normal with the bare ``R`` (``4 R`` on each edge), as MuJoCo regularises an elliptic cone's normal."""
+def pyramid_rows(sys: System, con: Contacts, v_e_start: torch.Tensor, h: float):
+    """The rows of MuJoCo's pyramidal cone (:func:`pyramid_edges`) for a constraint solve, edge-major ``(4C, B)``
+    each: the speed each edge aims for over the substep (its reference, built from its point's depth and the edge's
+    own speed ``v_e_start (4, C, B)`` at the substep's start), its regulariser ``2 mu^2 (1 + mu^2) R`` (``4 R``: a
+    frictionless point's four copies of its normal act as one with ``R``) and whether its point touches. An
+    elliptic cone's friction is solved on the same pyramid, its normal with the bare ``R`` (``4 R`` on each edge),
+    as MuJoCo regularises an elliptic cone's normal."""
     target, reg = reference(sys, con, v_e_start, h)
     if sys.contact_pyramidal:
         mu2 = con.friction * con.friction
         reg = reg * torch.where(mu2 > 0, 2.0 * mu2 * (1.0 + mu2), 4.0)
     else:
         reg = 4.0 * reg
-    rhs = (target - v_e).flatten(0, 1)
-    active = (con.depth > 0).expand_as(v_e).flatten(0, 1)
-    # start from the edges whose own reference asks for a push: a sliding point's trailing edges drop out at once
-    impulse = nonnegative_solve(inverse_inertia, reg.expand_as(v_e).flatten(0, 1), rhs, active, active & (rhs > 0),
-                                passes=PIVOT_PASSES)
-    return impulse.view(v_e.shape)
+    active = (con.depth > 0).expand_as(v_e_start)
+    return target.flatten(0, 1), reg.expand_as(v_e_start).flatten(0, 1), active.flatten(0, 1)
 
 
 def reference(sys: System, con: Contacts, v_start: torch.Tensor, h: float):

@@ -122,10 +122,12 @@ def load_mjcf(
             landing body within a substep. ``"soft"``: MuJoCo's soft contact on the normal, with each pair's
             ``solref``, ``solimp`` and ``margin`` (``contact_timeconst`` unused): a body sinks in and is pushed
             back along MuJoCo's spring-damper, and rests as deep as in MuJoCo (``torchsim.soft_contacts``).
-            ``"articulated"``: the soft contact solved through the articulation's joint-space inertia, as MuJoCo
-            solves it: an impulse on a foot moves the leg and the torso above it as if the joints were rigid
-            (``torchsim.articulated_contacts``; dense in the tree's dofs and the contact points). Friction stays a
-            Coulomb-capped impulse in all three.
+            ``"articulated"``: each substep's velocities solved through the articulation's joint-space inertia,
+            as MuJoCo solves them: the joints hold at the velocity level (their springs only return drift), and
+            armature, damping, soft limits and soft contacts with friction on MuJoCo's pyramid are one system, so
+            an impulse on a foot moves the leg and the torso above it as rigid joints would (``torchsim.tree_solve``;
+            dense in the tree's dofs and the contact points; dry friction on slides refused). Friction is a
+            Coulomb-capped impulse in the other two.
         xpbd_iterations: XPBD only: projection passes (contacts, then joint colours) per substep.
         max_speed, max_distance: an env whose body speed [m/s] or distance from the origin [m] exceeds these is
             flagged as diverged.
@@ -166,6 +168,9 @@ def load_mjcf(
     if contact_model == "articulated":
         if articulation.refusal(sys):
             raise UnsupportedMJCFError(f"contact_model='articulated': {articulation.refusal(sys)}")
+        if sys.dof_friction_slides:
+            raise UnsupportedMJCFError("contact_model='articulated': dry friction (frictionloss) on slide joints is "
+                                       "not supported; use contact_model='soft'")
         sys = articulation.with_tree(sys)
     if method == "spring":
         sys = _stable_springs(sys, joint_stiffness is None, joint_damping is None)

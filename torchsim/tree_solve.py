@@ -1,0 +1,157 @@
+"""The articulated model's velocity solve (``load_mjcf(contact_model="articulated")``, the spring method): each
+substep's velocities taken onto the rigid tree, with armature, joint damping, soft limits and contacts in one
+system, as MuJoCo's constraint solve has them.
+
+After the substep's forces (gravity, actuators, passive springs; not the joint springs) the bodies' momenta are
+taken to the tree's columns (``torchsim.articulation``), ``tau = J^T (m v, I w)`` plus each rotor's momentum
+``J_a qd`` at the column's rate at the substep's start, and the columns' rates solve ``(M + h D) qd = tau``: ``M``
+the joint-space inertia with armature, ``D`` the joint damping, implicit as in MuJoCo's Euler integrator. The bodies
+then move as the rigid tree, ``v = J qd``: the joints hold at the velocity level, where spring joints pass a force
+on only through springs that stretch, a substep or more later (on the states a trained walker visits, one env step
+in the air missed MuJoCo's converged answer by 5x MuJoCo's own error at its step; 0.8x with this solve,
+``studies/transfer_step_error.py --no-floor``). The joints' springs then keep only their position term, which
+returns the drift of integrating positions in maximal coordinates (``spring.joint_wrench(damped=False)``).
+
+The constraints act on those rates as rows of the columns: every dof's soft limit (``joint_space.limit_rows``, a
+unit row; the inactive ones held at 0) and every contact point's four pyramid edges (``articulated_contacts``),
+solved together for impulses ``p >= 0`` through the rows' inverse inertia ``r (M + h D)^-1 r^T``
+(``soft_contacts.nonnegative_solve``): a foot whose limit carries the body under a contact load meets both in one
+system. Dry friction (``frictionloss``) then takes one clamped Gauss-Seidel sweep. One factorisation of ``M + h D``
+per env and substep serves every right-hand side.
+
+The cost is dense: ``C^2 N`` products to build ``M``, one ``C x C`` factorisation with ``1 + D + F + 4K`` right-hand
+sides, and ``PIVOT_PASSES`` factorisations of the ``(D + 4K)``-row constraint system, per env and substep (``C``
+columns, ``N`` bodies, ``D`` dofs, ``F`` frictional rows, ``K`` contact points).
+"""
+
+import torch
+
+from torchsim import articulated_contacts, articulation, joint_space, lanes, rigid, soft_contacts, spatial
+from torchsim.collision import Contacts, contacts
+from torchsim.kinematics import Bodies, JointFrames, dof_values
+from torchsim.system import System
+
+
+def column_rates(sys: System, bodies: Bodies, frames: JointFrames) -> torch.Tensor:
+    """The tree's columns' rates ``(C, B)`` at ``bodies`` (``frames`` measured from them): the dofs' rates, each
+    ball joint's child's angular velocity relative to its parent's (world axes), each free body's COM velocity and
+    angular velocity."""
+    parts = [dof_values(sys, frames.qd)]
+    if sys.ball_joint.shape[0]:
+        child, parent = sys.jnt_child[sys.ball_joint], sys.jnt_parent[sys.ball_joint]
+        relative = bodies.xd_ang.index_select(-2, child) - bodies.xd_ang.index_select(-2, parent)  # (3, nball, B)
+        parts.append(relative.transpose(0, 1).flatten(0, 1))
+    if sys.free_body.shape[0]:
+        body = sys.free_body
+        twist = torch.stack((bodies.xd_vel.index_select(-2, body), bodies.xd_ang.index_select(-2, body)))
+        parts.append(twist.permute(2, 0, 1, 3).flatten(0, 2))  # (2, 3, nfree, B) -> (6 nfree, B)
+    return torch.cat(parts)
+
+
+def column_momentum(sys: System, model: articulation.Articulation, bodies: Bodies, rot: torch.Tensor) -> torch.Tensor:
+    """``J^T (m v, I w) (C, B)``: the bodies' momenta on the tree's columns, ``rot (3, 3, N + 1, B)`` their
+    rotations."""
+    n = sys.num_bodies
+    body_rot = rot[..., :n, :]
+    inertia_world = spatial.mm(body_rot, lanes.param(sys.body_inertia, 1, 2), spatial.transpose(body_rot))
+    linear = lanes.param(sys.body_mass, 1) * bodies.xd_vel[:, :n]
+    angular = spatial.matvec(inertia_world, bodies.xd_ang[:, :n])
+    return (model.vel * linear[:, None]).sum((0, 2)) + (model.ang * angular[:, None]).sum((0, 2))
+
+
+def column_damping(sys: System) -> torch.Tensor:
+    """Every column's joint damping ``(C, 1 | B)`` [N m s | N s]: the dof's, then each ball joint's and free
+    joint's on all of its dofs. (A free joint's acts on its body's COM velocity, MuJoCo's on its frame's origin's:
+    the same where the origin is at the COM.)"""
+    return torch.cat((lanes.param(sys.dof_damping, 1), lanes.param(sys.ball_damping, 1).repeat_interleave(3, 0),
+                      lanes.param(sys.free_damping, 1).repeat_interleave(6, 0)))
+
+
+def ball_spring_impulse(sys: System, bodies: Bodies, frames: JointFrames, h: float) -> torch.Tensor:
+    """The ball joints' springs' impulses over ``h`` on their columns ``(3 nball, B)``: ``-h K log(q_spring^-1 q)``
+    (MuJoCo's ``mju_subQuat``, child frame) turned to world axes."""
+    joint = sys.ball_joint
+    offset = spatial.quat_mul(spatial.quat_conj(lanes.param(sys.ball_spring, 1, 1)),
+                              frames.quat_rel.index_select(-2, joint))
+    impulse = spatial.quat_rotate(bodies.x_quat.index_select(-2, sys.jnt_child[joint]),
+                                  -h * lanes.param(sys.ball_stiffness, 1) * spatial.quat_to_rot_vec(offset))
+    return impulse.transpose(0, 1).flatten(0, 1)
+
+
+def solve(sys: System, start: Bodies, free: Bodies, frames: JointFrames, rot: torch.Tensor, q: torch.Tensor,
+          h: float) -> tuple[Bodies, Contacts, torch.Tensor]:
+    """The bodies after the solve, the contacts at their poses and each contact point's impulse ``p_lin (3, K, B)``
+    on its body a. ``start``: the bodies at the substep's start; ``free``: their velocities after the substep's
+    forces (same poses); ``frames`` and ``rot (3, 3, N + 1, B)`` at those poses; ``q (D, B)`` the dofs' coordinates
+    (``kinematics.dof_angles``)."""
+    model = articulation.articulation(sys, start, frames, rot)
+    n_dof, n_columns, batch = sys.dof_flat.shape[0], model.inertia.shape[0], rot.shape[-1]
+    rates = column_rates(sys, start, frames)
+    armature = articulation.column_armature(sys)
+    tau = column_momentum(sys, model, free, rot) + armature * rates
+    if sys.ball_joint.shape[0]:
+        tau = tau.index_add(0, torch.arange(n_dof, n_dof + 3 * sys.ball_joint.shape[0], device=tau.device),
+                            ball_spring_impulse(sys, start, frames, h))
+    diagonal = torch.arange(n_columns, device=tau.device) * (n_columns + 1)
+    damped = articulation.with_armature(sys, model.inertia).flatten(0, 1).index_add(
+        0, diagonal, (h * column_damping(sys)).expand(-1, batch)).view(n_columns, n_columns, batch)
+
+    con = contacts(sys, start, rot)
+    edges = soft_contacts.pyramid_edges(con)  # (4, 3, K, B)
+    edge_rows = torch.cat(articulated_contacts.point_rows(model, start, con, edges.unbind(0)), 1)  # (C, 4K, B)
+    unit = torch.eye(n_columns, n_dof, dtype=tau.dtype, device=tau.device)[:, :, None]
+    limits = joint_space.limit_rows(sys, q, rates[:n_dof], h) if sys.dof_limits else None
+    limit_rows = unit * limits.sign if limits is not None else unit[:, :0].expand(-1, -1, batch)
+    friction = joint_space.friction_columns(sys, n_columns).to(tau)  # (C, F)
+    rows = torch.cat((limit_rows.expand(-1, -1, batch), edge_rows), 1)  # (C, R, B): the constraints' rows
+    solved = spatial.spd_solve(damped, torch.cat((tau.unsqueeze(1), rows,
+                                                  friction[:, :, None].expand(-1, -1, batch)), 1))
+    qd_free, mobility, friction_mobility = solved[:, 0], solved[:, 1:1 + rows.shape[1]], solved[:, 1 + rows.shape[1]:]
+
+    impulse = constraint_impulses(sys, con, edges, limits, rows, mobility, qd_free, start, h)
+    qd = qd_free + (mobility * impulse.unsqueeze(0)).sum(1)
+    if friction.shape[1]:
+        qd = qd + dry_friction(sys, friction, friction_mobility, qd, h)
+    zero = start._replace(xd_vel=torch.zeros_like(free.xd_vel), xd_ang=torch.zeros_like(free.xd_ang))
+    edge_impulses = impulse[limit_rows.shape[1]:].view(4, edges.shape[2], batch)
+    return articulation.move(zero, model, qd), con, (edge_impulses.unsqueeze(1) * edges).sum(0)
+
+
+def constraint_impulses(sys: System, con: Contacts, edges: torch.Tensor, limits: joint_space.LimitRows | None,
+                        rows: torch.Tensor, mobility: torch.Tensor, qd_free: torch.Tensor, start: Bodies,
+                        h: float) -> torch.Tensor:
+    """The impulses ``p (R, B)`` (``>= 0``) of the constraints' rows ``rows (C, R, B)`` (the ``D`` limits' then the
+    ``4K`` pyramid ``edges (4, 3, K, B)``), ``mobility = (M + h D)^-1 rows``, on the columns' rates ``qd_free (C,
+    B)``; ``start``, the bodies at the substep's start, gives the contacts' reference speeds."""
+    batch = qd_free.shape[-1]
+    if not rows.shape[1]:  # nothing to solve (nothing limited, no contact pairs)
+        return qd_free.new_zeros(0, batch)
+    v_rel_start = rigid.contact_arms(start, con.body_a, con.body_b, con.pos)[2]
+    target, reg, active = soft_contacts.pyramid_rows(sys, con, (edges * v_rel_start).sum(1), h)
+    if limits is not None:
+        n_dof = limits.sign.shape[0]
+        target = torch.cat((limits.sign * limits.target, target))
+        reg = torch.cat((limits.reg.expand(n_dof, batch), reg))
+        active = torch.cat((limits.active.expand(n_dof, batch), active))
+    rhs = target - (rows * qd_free.unsqueeze(1)).sum(0)
+    inverse_inertia = (rows.unsqueeze(2) * mobility.unsqueeze(1)).sum(0)  # (R, R, B)
+    # start from the rows whose own reference asks for a push: a sliding point's trailing edges drop out at once
+    return soft_contacts.nonnegative_solve(inverse_inertia, reg, rhs, active, active & (rhs > 0),
+                                           passes=soft_contacts.PIVOT_PASSES)
+
+
+def dry_friction(sys: System, friction: torch.Tensor, mobility: torch.Tensor, qd: torch.Tensor,
+                 h: float) -> torch.Tensor:
+    """The columns' rate change ``(C, B)`` of the dry-friction impulses on rates ``qd (C, B)``: along each frictional
+    row ``c_r`` (``friction (C, F)``, ``mobility = (M + h D)^-1 c_r`` ``(C, F, B)``) an impulse stopping the row,
+    clamped to ``h frictionloss``, one Gauss-Seidel sweep in row order (exact for one row, or for rows that do not
+    couple)."""
+    limit = joint_space.hinge_friction_limits(sys, h)  # (F, B)
+    w = (friction[:, :, None, None] * mobility.unsqueeze(1)).sum(0)  # (F, F, B): c^T (M + h D)^-1 c
+    speed = (friction[:, :, None] * qd.unsqueeze(1)).sum(0)  # (F, B)
+    p = []  # (1, B) slices: row graphs (torchsim.execution.kernel.rows) cannot read a (1,)-shaped constant
+    for k in range(speed.shape[0]):
+        row = slice(k, k + 1)
+        stop = -(speed[row] + sum(w[row, j] * p[j] for j in range(k))) / w[row, k]
+        p.append(torch.minimum(torch.maximum(stop, -limit[row]), limit[row]))
+    return (mobility * torch.cat(p).unsqueeze(0)).sum(1)
