@@ -229,8 +229,8 @@ class System:
         pair kind, the cells tested around a geom (static; ``torchsim.collision_hfield``).
         contact_soft: whether contacts are MuJoCo's soft constraint (``load_mjcf(contact_model="soft")``, the
         spring method; static).  contact_articulated: whether they are, with the joints, limits and armature,
-        solved through the articulation (``contact_model="articulated"``, ``torchsim.tree_solve``; static).  Per contact point ``C`` (the
-        order of ``collision.contacts``):
+        solved through the articulation (``contact_model="articulated"``, ``torchsim.tree_solve``; static).
+        Per contact point ``C`` (the order of ``collision.contacts``):
         contact_gains: (C, 2) ``K`` [1/s^2], ``B`` [1/s] from the pair's ``solref``.  contact_solimp: (C, 5).
         contact_invweight: (C,) MuJoCo's approximate inverse mass of the contact normal at ``qpos0`` (its two
         bodies' translational ``body_invweight0``) [1/kg].  contact_solimp_square: every contact's ``solimp``
