@@ -18,7 +18,7 @@ with ``R`` scaled by ``2 mu^2 (1 + mu^2)``: the normal is regularised by ``mu^2 
 ``R``, so a contact with friction 2 rests 5.3x deeper than with friction 1 (measured in MuJoCo; both reproduced,
 ``tests/test_soft_contacts.py``). A frictionless contact (condim 1) keeps the bare ``R``, as does an elliptic cone.
 
-The articulated contacts (``torchsim.articulated_contacts``) solve those edges themselves, as MuJoCo does: each edge
+The articulated model (``torchsim.tree_solve``) solves those edges themselves, as MuJoCo does: each edge
 a row with its own reference speed, the edges that would pull released by principal pivoting
 (:func:`pyramid_rows`, :func:`nonnegative_solve`).
 """

@@ -8,9 +8,11 @@ taken to the tree's columns (``torchsim.articulation``), ``tau = J^T (m v, I w)`
 the joint-space inertia with armature, ``D`` the joint damping, implicit as in MuJoCo's Euler integrator. The bodies
 then move as the rigid tree, ``v = J qd``: the joints hold at the velocity level, where spring joints pass a force
 on only through springs that stretch, a substep or more later (on the states a trained walker visits, one env step
-in the air missed MuJoCo's converged answer by 5x MuJoCo's own error at its step; 0.8x with this solve,
+in the air missed MuJoCo's converged answer by 5x MuJoCo's own error at its step; 0.7-1.2x with this solve,
 ``studies/transfer_step_error.py --no-floor``). The joints' springs then keep only their position term, which
-returns the drift of integrating positions in maximal coordinates (``spring.joint_wrench(damped=False)``).
+returns the drift of integrating positions in maximal coordinates, applied to the poses alone
+(``spring.tree_velocities``). Bodies no column moves (welded to the world) end at rest; welds act on the bodies
+after this solve, and the next substep's takes their momentum to the tree.
 
 The constraints act on those rates as rows of the columns: every dof's soft limit (``joint_space.limit_rows``, a
 unit row; the inactive ones held at 0) and every contact point's four pyramid edges (``articulated_contacts``),
