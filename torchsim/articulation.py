@@ -26,7 +26,7 @@ from torchsim.system import System
 
 class Articulation(NamedTuple):
     """The joint-space inertia ``inertia (C, C, B)`` [kg, kg m, kg m^2] of the bodies at one pose (no armature:
-    :func:`with_armature`), and the Jacobians ``ang, vel (3, C, N, B)``: each body's angular velocity [rad/s] and COM
+    :func:`column_armature`), and the Jacobians ``ang, vel (3, C, N, B)``: each body's angular velocity [rad/s] and COM
     velocity [m/s] per unit rate of each column."""
 
     inertia: torch.Tensor
@@ -109,20 +109,31 @@ def articulation(sys: System, bodies: Bodies, frames: JointFrames, rot: torch.Te
     return Articulation(inertia, ang_jac, vel_jac)
 
 
+def per_column(dof: torch.Tensor, ball: torch.Tensor, free: torch.Tensor) -> torch.Tensor:
+    """A value per column ``(C, 1 | B)`` from the dofs' ``(D, 1 | B)``, the ball joints' ``(nball, 1 | B)`` and the
+    free joints' ``(nfree, 1 | B)`` (MJCF gives such a joint one value for all of its dofs)."""
+    return torch.cat((dof, ball.repeat_interleave(3, 0), free.repeat_interleave(6, 0)))
+
+
 def column_armature(sys: System) -> torch.Tensor:
-    """Every column's armature ``(C, 1 | B)`` [kg m^2 | kg]: the dof's, then each ball joint's and free joint's on
-    all of its dofs."""
-    return torch.cat((lanes.param(sys.dof_armature, 1), lanes.param(sys.ball_armature, 1).repeat_interleave(3, 0),
-                      lanes.param(sys.free_armature, 1).repeat_interleave(6, 0)))
+    """Every column's armature ``(C, 1 | B)`` [kg m^2 | kg]: the rotors an impulse on the bodies also turns."""
+    return per_column(lanes.param(sys.dof_armature, 1), lanes.param(sys.ball_armature, 1),
+                      lanes.param(sys.free_armature, 1))
 
 
-def with_armature(sys: System, inertia: torch.Tensor) -> torch.Tensor:
-    """The joint-space inertia ``inertia (C, C, B)`` with every dof's armature on its diagonal (MuJoCo's ``M``): the
-    rotors an impulse on the bodies also turns."""
-    n_columns, batch = inertia.shape[0], inertia.shape[-1]
-    diagonal = torch.arange(n_columns, device=inertia.device) * (n_columns + 1)
-    return inertia.flatten(0, 1).index_add(0, diagonal, column_armature(sys).expand(-1, batch)).view(
-        n_columns, n_columns, batch)
+def column_damping(sys: System) -> torch.Tensor:
+    """Every column's joint damping ``(C, 1 | B)`` [N m s | N s]. (A free joint's acts on its body's COM velocity,
+    MuJoCo's on its frame's origin's: the same where the origin is at the COM.)"""
+    return per_column(lanes.param(sys.dof_damping, 1), lanes.param(sys.ball_damping, 1),
+                      lanes.param(sys.free_damping, 1))
+
+
+def add_diagonal(matrix: torch.Tensor, values: torch.Tensor) -> torch.Tensor:
+    """``matrix (C, C, B)`` with ``values (C, 1 | B)`` added to its diagonal (e.g. :func:`column_armature`, which
+    makes the joint-space inertia MuJoCo's ``M``)."""
+    n_columns, batch = matrix.shape[0], matrix.shape[-1]
+    diagonal = torch.arange(n_columns, device=matrix.device) * (n_columns + 1)
+    return matrix.flatten(0, 1).index_add(0, diagonal, values.expand(-1, batch)).view(n_columns, n_columns, batch)
 
 
 def move(bodies: Bodies, model: Articulation, rate_change: torch.Tensor) -> Bodies:

@@ -61,14 +61,6 @@ def column_momentum(sys: System, model: articulation.Articulation, bodies: Bodie
     return (model.vel * linear[:, None]).sum((0, 2)) + (model.ang * angular[:, None]).sum((0, 2))
 
 
-def column_damping(sys: System) -> torch.Tensor:
-    """Every column's joint damping ``(C, 1 | B)`` [N m s | N s]: the dof's, then each ball joint's and free
-    joint's on all of its dofs. (A free joint's acts on its body's COM velocity, MuJoCo's on its frame's origin's:
-    the same where the origin is at the COM.)"""
-    return torch.cat((lanes.param(sys.dof_damping, 1), lanes.param(sys.ball_damping, 1).repeat_interleave(3, 0),
-                      lanes.param(sys.free_damping, 1).repeat_interleave(6, 0)))
-
-
 def ball_spring_impulse(sys: System, bodies: Bodies, frames: JointFrames, h: float) -> torch.Tensor:
     """The ball joints' springs' impulses over ``h`` on their columns ``(3 nball, B)``: ``-h K log(q_spring^-1 q)``
     (MuJoCo's ``mju_subQuat``, child frame) turned to world axes."""
@@ -94,9 +86,8 @@ def solve(sys: System, start: Bodies, free: Bodies, frames: JointFrames, rot: to
     if sys.ball_joint.shape[0]:
         tau = tau.index_add(0, torch.arange(n_dof, n_dof + 3 * sys.ball_joint.shape[0], device=tau.device),
                             ball_spring_impulse(sys, start, frames, h))
-    diagonal = torch.arange(n_columns, device=tau.device) * (n_columns + 1)
-    damped = articulation.with_armature(sys, model.inertia).flatten(0, 1).index_add(
-        0, diagonal, (h * column_damping(sys)).expand(-1, batch)).view(n_columns, n_columns, batch)
+    damped = articulation.add_diagonal(articulation.add_diagonal(model.inertia, armature),
+                                       h * articulation.column_damping(sys))  # M + h D, M with armature
 
     con = contacts(sys, start, rot)
     edges = soft_contacts.pyramid_edges(con)  # (4, 3, K, B)
