@@ -100,7 +100,8 @@ class TorchsimEnv(EnvBase):
     xpbd_iterations: int = 1
     #: URDF models only: rotor inertia [kg m^2] added to every joint (URDF has no armature).
     urdf_armature: float = 0.0
-    #: Physics substeps per model timestep, chosen per task by measurement (None: ``load_mjcf``'s 0.5 ms default).
+    #: Physics substeps per model timestep, chosen per task by measurement on its own method and contact model
+    #: (None, or another method or contact model: ``load_mjcf``'s default).
     substeps: int | None = None
     #: Contact model (``torchsim.load_mjcf``'s ``contact_model``), chosen per task by measurement.
     contact_model: str = "impulse"
@@ -131,8 +132,11 @@ class TorchsimEnv(EnvBase):
         xml = self._model_xml()
         self.mj_model = mujoco.MjModel.from_xml_string(xml)
         if isinstance(stepper, str):
-            system = torchsim.load_mjcf(xml, method=method or self.method,
-                                        substeps=self.substeps if substeps is None else substeps,
+            own_physics = (method or self.method, contact_model or self.contact_model) == (self.method,
+                                                                                           self.contact_model)
+            if substeps is None and own_physics:  # the task's substeps were measured on its own physics
+                substeps = self.substeps
+            system = torchsim.load_mjcf(xml, method=method or self.method, substeps=substeps,
                                         contact_model=contact_model or self.contact_model,
                                         xpbd_iterations=self.xpbd_iterations, dtype=dtype, device=self.device)
             stepper = torchsim.Stepper(system, stepper)

@@ -57,7 +57,9 @@ def test_free_body_damping_decays_exponentially(method, contact_model):
     mj, ours = _rollout(xml, [0, 0, 1, 1, 0, 0, 0], [1, 0.5, 0, 0, 0, 3], 1.0, method, contact_model)
     t = 1.0
     lin, ang = np.exp(-0.5 * t / (MASS + 0.1)), np.exp(-0.5 * t / (I_ZZ + 0.1))
-    assert np.allclose(ours[-1, 7:], [lin, 0.5 * lin, 0, 0, 0, 3 * ang], rtol=5e-3, atol=1e-9)
+    # MuJoCo's implicit damping at 1 ms leaves the spin 0.7 % above the exponential (the articulated model, one
+    # substep per timestep, does the same)
+    assert np.allclose(ours[-1, 7:], [lin, 0.5 * lin, 0, 0, 0, 3 * ang], rtol=1e-2, atol=1e-9)
     assert np.allclose(ours[:, 7:], mj[:, 7:], rtol=1e-2, atol=1e-9)
     assert np.abs(ours[:, :3] - mj[:, :3]).max() < 1e-3  # positions: the integral of the same decay
 

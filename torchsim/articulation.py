@@ -26,12 +26,17 @@ from torchsim.system import System
 
 class Articulation(NamedTuple):
     """The joint-space inertia ``inertia (C, C, B)`` [kg, kg m, kg m^2] of the bodies at one pose (no armature:
-    :func:`column_armature`), and the Jacobians ``ang, vel (3, C, N, B)``: each body's angular velocity [rad/s] and COM
-    velocity [m/s] per unit rate of each column."""
+    :func:`column_armature`), the Jacobians ``ang, vel (3, C, N, B)``: each body's angular velocity [rad/s] and COM
+    velocity [m/s] per unit rate of each column, and the columns themselves ``(3, C, B)``: each one's rotation axis
+    ``axis_ang`` (zero for a slide), translation axis ``axis_lin`` (zero for a hinge) and the point ``pivot`` [m] it
+    turns about (world)."""
 
     inertia: torch.Tensor
     ang: torch.Tensor
     vel: torch.Tensor
+    axis_ang: torch.Tensor
+    axis_lin: torch.Tensor
+    pivot: torch.Tensor
 
 
 def tree_fields(jnt_child, jnt_parent, dof_flat, ball_joint, free_body, num_bodies: int, refusal: str | None) -> dict:
@@ -89,7 +94,7 @@ def articulation(sys: System, bodies: Bodies, frames: JointFrames, rot: torch.Te
     batch = x_pos.shape[-1]
     joint = sys.dof_flat // 6
     hinge = lanes.param(sys.dof_is_hinge, 1)
-    axes = dof_values(sys, frames.axes)  # (3, D, B)
+    axes = dof_axes(sys, frames)  # (3, D, B)
     anchor = x_pos.index_select(1, sys.jnt_child) + frames.r_child  # (3, J, B) world
     n_dof = axes.shape[1]
     fixed_lin, fixed_ang = sys.tree_lin[:, n_dof:, None], sys.tree_ang[:, n_dof:, None]  # (3, C - D, 1)
@@ -106,7 +111,56 @@ def articulation(sys: System, bodies: Bodies, frames: JointFrames, rot: torch.Te
     # sum over bodies of m v_c . v_d + w_c . I w_d, as broadcast products: (3, C, 1, N, B) x (3, 1, C, N, B)
     turned = spatial.matvec(inertia_world[:, :, None], ang_jac)  # (3, C, N, B): I_b w_c
     inertia = ((vel_jac * mass)[:, :, None] * vel_jac[:, None] + ang_jac[:, :, None] * turned[:, None]).sum((0, 3))
-    return Articulation(inertia, ang_jac, vel_jac)
+    return Articulation(inertia, ang_jac, vel_jac, ang, lin, pivot)
+
+
+def dof_axes(sys: System, frames: JointFrames) -> torch.Tensor:
+    """Each dof's world axis ``(3, D, B)`` at the poses ``frames`` measured: the direction a slide moves its child
+    along, or the one a hinge turns it about, per unit rate (the Jacobian's columns). A joint of three hinges holds
+    its dual rows in ``frames.axes`` (the directions its generalized forces act along); its columns are those of
+    the rows' inverse."""
+    axes = dof_values(sys, frames.axes)
+    if not sys.jnt_kinds[3]:
+        return axes
+    joint, slot = sys.dof_flat // 6, (sys.dof_flat % 6 - 3).clamp_min(0)
+    columns = spatial.inv3(frames.hinge_dual)[:, slot, joint]  # (3, D, B): column ``slot`` of each dof's joint
+    three = (lanes.param(sys.jnt_mode, 2, 0)[joint, 3] > 0) & lanes.param(sys.dof_is_hinge, 1)  # (D, 1)
+    return torch.where(three, columns, axes)
+
+
+def velocity_product(sys: System, model: Articulation, bodies: Bodies, frames: JointFrames,
+                     rates: torch.Tensor) -> Bodies:
+    """The bodies' COM and angular accelerations ``(3, N + 1, B)`` (the world's zero) at zero joint acceleration,
+    ``d/dt(J) qd``, for bodies moving as the tree with the columns' ``rates (C, B)``: the centripetal and Coriolis
+    accelerations that the joints' constraint forces supply (MuJoCo's bias force is ``J^T`` of these, through the
+    bodies' inertias, plus the gyroscopic torques). Every column's axes and pivot move with the bodies: a joint's
+    slides and first hinge turn with its parent, a later hinge also with the hinges before it (MuJoCo composes a
+    body's joints in order), at angular velocity ``w_c``; a ball's and a free body's world axes do not turn; each
+    pivot moves at its point's velocity ``v_p`` on the joint's child. So ``d/dt`` of a column's ``(ang, vel)`` on
+    body ``b`` is ``(w_c x a, w_c x l + (w_c x a) x (x_b - p) + a x (v_b - v_p))``."""
+    n, n_dof = sys.num_bodies, sys.dof_flat.shape[0]
+    joint, slot = sys.dof_flat // 6, sys.dof_flat % 6
+    # the hinges before each hinge dof in its joint: (D, D) 1 where dof k turns dof c's axis
+    before = (joint[:, None] == joint[None]) & (slot[None] >= 3) & (slot[None] < slot[:, None])
+    turning = model.axis_ang[:, :n_dof] * rates[:n_dof]  # (3, D, B): each hinge's part of its child's rotation
+    carrier = (bodies.xd_ang.index_select(1, sys.jnt_parent[joint])
+               + (before.to(rates.dtype)[:, :, None] * turning[:, None]).sum(2))
+    joint_child = torch.cat((sys.jnt_child[joint], sys.jnt_child[sys.ball_joint].repeat_interleave(3)))
+    r_child = torch.cat((frames.r_child.index_select(1, joint),
+                         frames.r_child.index_select(1, sys.ball_joint.repeat_interleave(3))), 1)  # (3, C - 6F, B)
+    pivot_vel = (bodies.xd_vel.index_select(1, joint_child)
+                 + spatial.cross(bodies.xd_ang.index_select(1, joint_child), r_child))
+    pivot_vel = torch.cat((pivot_vel, bodies.xd_vel.index_select(1, sys.free_body.repeat_interleave(6))), 1)
+    carrier = torch.cat((carrier, torch.zeros_like(pivot_vel[:, n_dof:])), 1)  # (3, C, B); world axes do not turn
+    turn_ang = spatial.cross(carrier, model.axis_ang) * rates  # (3, C, B), each times its rate
+    turn_lin = spatial.cross(carrier, model.axis_lin) * rates
+    x_pos, xd_vel = bodies.x_pos[:, :n, None], bodies.xd_vel[:, :n, None]  # (3, N, 1, B)
+    moves = sys.tree_moves.T[:, :, None]  # (N, C, 1)
+    ang = (turn_ang[:, None] * moves).sum(2)
+    lin = ((turn_lin[:, None] + spatial.cross(turn_ang[:, None], x_pos - model.pivot[:, None])
+            + spatial.cross((model.axis_ang * rates)[:, None], xd_vel - pivot_vel[:, None])) * moves).sum(2)
+    world = lin.new_zeros(3, 1, lin.shape[-1])
+    return bodies._replace(xd_vel=torch.cat((lin, world), 1), xd_ang=torch.cat((ang, world), 1))
 
 
 def per_column(dof: torch.Tensor, ball: torch.Tensor, free: torch.Tensor) -> torch.Tensor:

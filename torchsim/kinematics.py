@@ -376,20 +376,20 @@ def _block(x: torch.Tensor, start: torch.Tensor, width: int) -> torch.Tensor:
     return x.index_select(0, _addresses(start, width)).view(width, start.shape[0], x.shape[-1])
 
 
-def read_q(sys: System, bodies: Bodies, frames: JointFrames, q_near: torch.Tensor):
+def read_q(sys: System, bodies: Bodies, frames: JointFrames, window: torch.Tensor):
     """Generalized coordinates ``(nq, B)`` and velocities ``(nv, B)`` in MuJoCo's layout (lanes) from lanes ext
     body states and their :class:`JointFrames`.
 
-    Body poses fix a hinge angle only up to whole turns; of those, each hinge takes the one nearest its value in
-    ``q_near (nq, B)`` (the previous step's ``q``, or the ``q`` an env was initialised with), so hinge angles run
-    on continuously through full turns, as MuJoCo's ``qpos`` does.
+    Body poses fix a hinge angle only up to whole turns; of those, each hinge takes the one in its ``window``
+    (:func:`dof_window` of the previous step's ``q``, or of the ``q`` an env was initialised with), so hinge angles
+    run on continuously through full turns, as MuJoCo's ``qpos`` does.
     """
     b = bodies.x_pos.shape[-1]
     x_pos, x_quat, xd_vel, ang = (t.index_select(-2, sys.free_body) for t in bodies)
     com = spatial.quat_rotate(x_quat, lanes.param(sys.body_ipos[sys.free_body], 1, 1))
     lin = xd_vel - spatial.cross(ang, com)
     ball = sys.ball_joint
-    dof_q = dof_angles(sys, dof_values(sys, frames.q), dof_window(sys, q_near))
+    dof_q = dof_angles(sys, dof_values(sys, frames.q), window)
     # each part: its addresses and its lanes rows (component-major)
     q_parts = ((sys.dof_qpos, dof_q),
                (_addresses(sys.free_qpos, 7), torch.cat((x_pos - com, x_quat)).flatten(0, 1)),
@@ -409,13 +409,17 @@ def read_q(sys: System, bodies: Bodies, frames: JointFrames, q_near: torch.Tenso
 def forward(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
     """Lanes body COM poses and velocities ``(3|4, N, B)`` (no world row) for public generalized ``q (B, nq)``,
     ``qd (B, nv)``, MuJoCo semantics."""
-    b, n = q.shape[0], sys.num_bodies
-    q, qd = lanes.to_lanes(q), lanes.to_lanes(qd)
-    x_pos = q.new_zeros(3, n + 1, b)
-    x_quat = q.new_zeros(4, n + 1, b)
-    x_quat[0] = 1.0
-    xd_vel = q.new_zeros(3, n + 1, b)
-    xd_ang = q.new_zeros(3, n + 1, b)
+    n = sys.num_bodies
+    return Bodies(*(x[:, :n] for x in forward_lanes(sys, lanes.to_lanes(q), lanes.to_lanes(qd))))
+
+
+def forward_lanes(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
+    """:func:`forward` for lanes ``q (nq, B)``, ``qd (nv, B)``, with the world body: ext-indexed ``(3|4, N + 1,
+    B)``. Built out of place, level by level down the tree, so that the step's kernel can trace it (the articulated
+    model's substep, :func:`onto_tree`)."""
+    b, n = q.shape[-1], sys.num_bodies
+    x_pos, xd_vel, xd_ang = (q.new_zeros(3, n + 1, b) for _ in range(3))
+    x_quat = _identity_quats(q, n + 1)
 
     fb = sys.free_body
     root = _block(q, sys.free_qpos, 7)
@@ -423,10 +427,10 @@ def forward(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
     quat = spatial.normalize(root[3:])
     com = spatial.quat_rotate(quat, lanes.param(sys.body_ipos[fb], 1, 1))
     ang = spatial.quat_rotate(quat, root_vel[3:])
-    x_pos[:, fb] = root[:3] + com
-    x_quat[:, fb] = quat
-    xd_ang[:, fb] = ang
-    xd_vel[:, fb] = root_vel[:3] + spatial.cross(ang, com)
+    x_pos = x_pos.index_copy(1, fb, root[:3] + com)
+    x_quat = x_quat.index_copy(1, fb, quat)
+    xd_ang = xd_ang.index_copy(1, fb, ang)
+    xd_vel = xd_vel.index_copy(1, fb, root_vel[:3] + spatial.cross(ang, com))
 
     # joint slot values (6, J, B): coordinate relative to the zero frame (q - ref) and rate; ball joints read a
     # quaternion
@@ -435,11 +439,10 @@ def forward(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
     slot_q = q.new_zeros(n_jnt * 6, b).index_copy(0, sys.dof_flat, dof_q).view(n_jnt, 6, b).movedim(1, 0)
     slot_qd = q.new_zeros(n_jnt * 6, b).index_copy(0, sys.dof_flat, qd.index_select(0, sys.dof_qvel))
     slot_qd = slot_qd.view(n_jnt, 6, b).movedim(1, 0)
-    ball_q = q.new_zeros(4, n_jnt, b)
-    ball_q[0] = 1.0
-    ball_q[:, sys.ball_joint] = spatial.normalize(_block(q, sys.ball_qpos, 4))
-    ball_qd = q.new_zeros(3, n_jnt, b)
-    ball_qd[:, sys.ball_joint] = _block(qd, sys.ball_qvel, 3)
+    ball = sys.ball_joint
+    ball_q = _identity_quats(q, n_jnt)
+    ball_q = ball_q.index_copy(1, ball, spatial.normalize(_block(q, sys.ball_qpos, 4)))
+    ball_qd = q.new_zeros(3, n_jnt, b).index_copy(1, ball, _block(qd, sys.ball_qvel, 3))
 
     for level in sys.jnt_levels:
         p, c = sys.jnt_parent[level], sys.jnt_child[level]
@@ -476,9 +479,26 @@ def forward(sys: System, q: torch.Tensor, qd: torch.Tensor) -> Bodies:
             anchor = torch.where(is_general, anchor + offset, anchor)
             v_anchor = torch.where(is_general, v_anchor + spatial.cross(wp, offset) + rate, v_anchor)
         xc = anchor - spatial.quat_rotate(qc, lanes.param(sys.jnt_anchor_child[level], 1, 1))
-        x_pos[:, c], x_quat[:, c], xd_ang[:, c] = xc, qc, wc
-        xd_vel[:, c] = v_anchor + spatial.cross(wc, xc - anchor)
-    return Bodies(x_pos[:, :n], x_quat[:, :n], xd_vel[:, :n], xd_ang[:, :n])
+        x_pos, x_quat, xd_ang = x_pos.index_copy(1, c, xc), x_quat.index_copy(1, c, qc), xd_ang.index_copy(1, c, wc)
+        xd_vel = xd_vel.index_copy(1, c, v_anchor + spatial.cross(wc, xc - anchor))
+    return Bodies(x_pos, x_quat, xd_vel, xd_ang)
+
+
+def _identity_quats(like: torch.Tensor, count: int) -> torch.Tensor:
+    """``count`` identity quaternions ``(4, count, B)`` in ``like (*, B)``'s dtype and batch (zeros plus a constant
+    row, which the step's kernel folds)."""
+    zeros = like.new_zeros(3, count, like.shape[-1])
+    return torch.cat((zeros[:1] + 1.0, zeros))
+
+
+def onto_tree(sys: System, bodies: Bodies, solved: Bodies, window: torch.Tensor) -> Bodies:
+    """Lanes ``bodies`` put back onto their joints: every joint's coordinates read from the poses (:func:`read_q`,
+    hinge angles in ``window``) and the bodies placed from them down the tree (:func:`forward_lanes`), each joint
+    then exact. The dofs' rates are read from ``solved``, the same velocities at the poses they were solved at: read
+    at the moved poses, a hinge on a turning parent would lose the square of the turn (its axis turned away)."""
+    q, qd = read_q(sys, bodies, joint_frames(sys, bodies), window)
+    qd = qd.index_copy(0, sys.dof_qvel, dof_values(sys, joint_frames(sys, solved, all_slots=False).qd))
+    return forward_lanes(sys, q, qd)
 
 
 def _general_anchor(sys: System, level, quat_parent, quat0, turned, axes, rates):

@@ -10,7 +10,7 @@ import warnings
 import torch
 
 from torchsim import activation, lanes
-from torchsim.kinematics import Bodies, forward, joint_frames, read_q, with_world
+from torchsim.kinematics import Bodies, dof_window, forward, joint_frames, read_q, with_world
 from torchsim.methods import METHODS
 from torchsim.state import State
 from torchsim.system import System
@@ -37,7 +37,7 @@ def init(sys: System, q: torch.Tensor, qd: torch.Tensor, act: torch.Tensor | Non
         act = q.new_zeros(q.shape[0], sys.na)
     check(sys, "act", act, sys.na, q.shape[0])
     bodies = with_world(*forward(sys, q, qd))
-    q, qd = read_q(sys, bodies, joint_frames(sys, bodies), lanes.to_lanes(q))
+    q, qd = read_q(sys, bodies, joint_frames(sys, bodies), dof_window(sys, lanes.to_lanes(q)))
     n = sys.num_bodies
     return to_public(State(*(x[..., :n, :] for x in bodies), q, qd,
                            torch.zeros(q.shape[-1], dtype=torch.bool, device=q.device), lanes.to_lanes(act)))
@@ -132,7 +132,7 @@ def finish_lanes(sys: System, old: State, bodies: Bodies) -> State:
     """The lanes State (:func:`to_lanes_state`) after a step from ``old``'s: the moving bodies of ``bodies``,
     ``q, qd`` read back from them, divergence contained; ``old``'s activations (:func:`run_substeps` advances
     them)."""
-    q, qd = read_q(sys, bodies, joint_frames(sys, bodies), old.q)
+    q, qd = read_q(sys, bodies, joint_frames(sys, bodies), dof_window(sys, old.q))
     n = sys.num_bodies
     return contain_divergence(sys, old, State(*(x[..., :n, :] for x in bodies), q, qd, old.diverged, old.act))
 

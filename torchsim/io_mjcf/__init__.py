@@ -103,7 +103,10 @@ def load_mjcf(
             stiff springs for joints and limits, velocity impulses for contacts, in the spirit of Brax v1).
         substeps: substeps per ``<option timestep>``, a positive integer; default ``ceil(timestep / h)`` with h = 0.5 ms
             (ant: 20), raised (spring method, with a warning) where a joint would sag more than 3e-5 rad under the
-            model's weight (a robot arm fixed to the world, ``torchsim.io_mjcf.spring_stability.stiff_enough``).
+            model's weight (a robot arm fixed to the world, ``torchsim.io_mjcf.spring_stability.stiff_enough``);
+            with ``contact_model="articulated"`` 1, MuJoCo's own Euler step (4 where the model asks for RK4, whose
+            four evaluations of the dynamics they cost: gymnasium's Ant then follows MuJoCo at 1.4x MuJoCo's own
+            timestep sensitivity, 9.8x at 1).
         joint_stiffness: spring method only: fraction of a joint's error its spring removes per substep
             (gain ``stiffness / h^2 K^-1``, ``K`` the joint's inverse-inertia block); default
             ``JOINT_STIFFNESS = 0.2``.
@@ -122,11 +125,12 @@ def load_mjcf(
             landing body within a substep. ``"soft"``: MuJoCo's soft contact on the normal, with each pair's
             ``solref``, ``solimp`` and ``margin`` (``contact_timeconst`` unused): a body sinks in and is pushed
             back along MuJoCo's spring-damper, and rests as deep as in MuJoCo (``torchsim.soft_contacts``).
-            ``"articulated"``: each substep's velocities solved through the articulation's joint-space inertia,
-            as MuJoCo solves them: the joints hold at the velocity level (their springs only return drift), and
-            armature, damping, soft limits and soft contacts with friction on MuJoCo's pyramid are one system, so
-            an impulse on a foot moves the leg and the torso above it as rigid joints would (``torchsim.tree_solve``;
-            dense in the tree's dofs and the contact points; dry friction on slides refused). Friction is a
+            ``"articulated"``: MuJoCo's Euler step on the rigid tree: each substep's velocities solved through the
+            articulation's joint-space inertia with its bias forces, armature, damping, soft limits and soft
+            contacts with friction on MuJoCo's pyramid in one system, the poses put back onto the joints by forward
+            kinematics, so the joints are exact and an impulse on a foot moves the leg and the torso above it
+            (``torchsim.tree_solve``; dense in the tree's dofs and the contact points; dry friction on slides and
+            ``joint_stiffness``/``joint_damping``, which it has no springs for, refused). Friction is a
             Coulomb-capped impulse in the other two.
         xpbd_iterations: XPBD only: projection passes (contacts, then joint colours) per substep.
         max_speed, max_distance: an env whose body speed [m/s] or distance from the origin [m] exceeds these is
@@ -144,8 +148,14 @@ def load_mjcf(
         raise ValueError(f"contact_model={contact_model!r} is implemented for the spring method only, not {method!r}")
     m = mujoco_model(source, max_hull_vertices)
     check_supported(m)
+    articulated = contact_model == "articulated"
+    if articulated and (joint_stiffness is not None or joint_damping is not None):
+        raise ValueError("joint_stiffness and joint_damping size the spring method's joint springs; "
+                         "contact_model='articulated' holds its joints exactly and has none")
     free_substeps = substeps is None
-    if free_substeps:
+    if free_substeps and articulated:  # MuJoCo's Euler step; RK4's four evaluations of the dynamics as 4 substeps
+        substeps = 4 if m.opt.integrator == mujoco.mjtIntegrator.mjINT_RK4 else 1
+    elif free_substeps:
         substeps = max(1, int(np.ceil(m.opt.timestep / METHODS[method].default_substep_timestep - 1e-9)))
     _check_substeps(substeps)
     fused, fields = fuse_bodies(m)
@@ -162,17 +172,17 @@ def load_mjcf(
         joint_stiffness=JOINT_STIFFNESS if joint_stiffness is None else joint_stiffness,
         joint_damping=JOINT_DAMPING if joint_damping is None else joint_damping, contact_timeconst=contact_timeconst,
         xpbd_iterations=xpbd_iterations, contact_soft=contact_model == "soft",
-        contact_articulated=contact_model == "articulated", max_speed=max_speed,
+        contact_articulated=articulated, max_speed=max_speed,
         max_distance=max_distance, **fields,
     )
-    if contact_model == "articulated":
+    if articulated:
         if articulation.refusal(sys):
             raise UnsupportedMJCFError(f"contact_model='articulated': {articulation.refusal(sys)}")
         if sys.dof_friction_slides:
             raise UnsupportedMJCFError("contact_model='articulated': dry friction (frictionloss) on slide joints is "
                                        "not supported; use contact_model='soft'")
         sys = articulation.with_tree(sys)
-    if method == "spring":
+    if method == "spring" and not articulated:
         sys = _stable_springs(sys, joint_stiffness is None, joint_damping is None)
         sys = spring_stability.stiff_enough(sys, free_substeps)
     return sys.to(device=device, dtype=dtype)

@@ -10,6 +10,10 @@ gains are held in each joint's lighter body's frame, so that they turn with a sp
 Contacts take Brax's impulse form: a normal impulse removing approaching velocity plus a Baumgarte term
 ``depth / (e timeconst)``, Coulomb-capped friction, impulses averaged over a body's active contacts.
 
+With ``contact_model="articulated"`` the joints are no springs: the substep is MuJoCo's Euler step on the rigid tree
+(:func:`tree_velocities`, ``torchsim.tree_solve``, then ``kinematics.onto_tree``), sharing this module's applied
+forces.
+
 Tensors are in the lanes layout (``torchsim.lanes``): ext-indexed body vectors ``(3, N + 1, B)``, dof quantities
 ``(D, B)``.
 """
@@ -23,7 +27,7 @@ from torchsim import (hinge_anchors, integrator, joint_space, spatial, rigid, so
 from torchsim.actuators import body_wrench
 from torchsim.collision import contacts
 from torchsim.fluid import fluid_wrench
-from torchsim.kinematics import Bodies, JointFrames, dof_angles, dof_values, dof_window, joint_frames
+from torchsim.kinematics import Bodies, JointFrames, dof_angles, dof_values, dof_window, joint_frames, onto_tree
 from torchsim.methods._method import Method
 from torchsim.system import System
 
@@ -94,21 +98,19 @@ def held_gain(sys: System, gain: torch.Tensor, inv: rigid.InverseInertia) -> tor
 
 
 def joint_wrench(sys: System, bodies: Bodies, fr: JointFrames, gain: torch.Tensor, h: float,
-                 inv: rigid.InverseInertia, damped: bool = True):
+                 inv: rigid.InverseInertia):
     """Ext-indexed ``(force, torque)`` ``(3, N + 1, B)`` of every joint's anchor spring and alignment spring, for
     gain matrices ``gain (3, 3, lin/ang, J, B)`` held in the frames of :func:`gain_frame` (:func:`held_gain`) and
     the substep's inverse inertias ``inv`` (their rotations and masses).
 
     The springs and dampers are ``kappa / h^2 K^-1`` and ``zeta / h K^-1`` with ``K`` the joint's inverse-inertia
     block in its constrained directions: every direction is corrected by the same fraction per substep, so thin
-    links (a capsule's small inertia about its axis) stay inside the explicit stability limit. ``damped=False``:
-    the springs alone (the articulated model, whose joints hold at the velocity level: ``torchsim.tree_solve``).
+    links (a capsule's small inertia about its axis) stay inside the explicit stability limit.
     """
     child, parent = sys.jnt_child, sys.jnt_parent
     r = torch.stack((fr.r_child, fr.r_parent), 1)
-    correction = sys.joint_stiffness / (h * h) * torch.stack((fr.lin_err, fr.ang_err), 1)
-    if damped:
-        correction = correction + sys.joint_damping / h * _joint_rates(sys, bodies, fr, r)
+    correction = (sys.joint_stiffness / (h * h) * torch.stack((fr.lin_err, fr.ang_err), 1)
+                  + sys.joint_damping / h * _joint_rates(sys, bodies, fr, r))
     rot = gain_frame(sys, inv)  # (3, 3, 1, J, B): broadcast over lin/ang
     correction = spatial.matvec(spatial.transpose(rot), correction)
     force, torque = (-spatial.matvec(rot, spatial.matvec(gain, correction))).unbind(1)
@@ -224,13 +226,11 @@ def step_terms(sys: System, bodies: Bodies, q: torch.Tensor, h: float) -> StepTe
 def substep(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h: float) -> Bodies:
     """Forces (actuators, joint springs) -> velocities (armature, damping, limits) -> contact impulses (on
     armature-loaded links) -> positions; with articulated contacts, forces -> the rigid tree's velocity solve ->
-    the joint springs' position term -> positions (:func:`tree_velocities`). Lanes ``bodies``, ``ctrl (U, B)``;
-    ``terms`` from :func:`step_terms` at the step's start."""
-    if sys.contact_articulated:  # the springs' drift correction moves the poses alone (a split impulse)
-        after, _, _, drift_vel, drift_ang = tree_velocities(sys, bodies, ctrl, terms, h)
-        moved = integrator.integrate_positions(after._replace(xd_vel=after.xd_vel + drift_vel,
-                                                              xd_ang=after.xd_ang + drift_ang), h)
-        return moved._replace(xd_vel=after.xd_vel, xd_ang=after.xd_ang)
+    positions, put back onto the joints (:func:`tree_velocities`). Lanes ``bodies``, ``ctrl (U, B)``; ``terms``
+    from :func:`step_terms` at the step's start."""
+    if sys.contact_articulated:  # no joint springs: the tree's forward kinematics holds the joints exactly
+        after = tree_velocities(sys, bodies, ctrl, terms, h)[0]
+        return onto_tree(sys, integrator.integrate_positions(after, h), after, terms.window)
     after, inv, fr = free_velocities(sys, bodies, ctrl, terms, h)
     if sys.contact_groups:  # poses not yet moved: the substep's rot and joint frames
         after = contact_impulses(sys, after, terms.loaded, inv.rot, bodies, h)
@@ -241,7 +241,7 @@ def contact_forces(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepT
     """The contacts of lanes ``bodies`` and the force ``(3, C, B)`` [N] each point's impulse puts on its body a over
     the first substep from them: what :func:`substep` applies, divided by ``h``."""
     if sys.contact_articulated:
-        _, con, p_lin, _, _ = tree_velocities(sys, bodies, ctrl, terms, h)
+        _, con, p_lin = tree_velocities(sys, bodies, ctrl, terms, h)
         return con, p_lin / h
     after, inv, fr = free_velocities(sys, bodies, ctrl, terms, h)
     con, _, _, p_lin, scale_a, _ = contact_impulse_terms(sys, after, terms.loaded, inv.rot, bodies, h)
@@ -283,20 +283,14 @@ def free_velocities(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: Step
 
 
 def tree_velocities(sys: System, bodies: Bodies, ctrl: torch.Tensor, terms: StepTerms, h: float):
-    """The articulated model's substep velocities, its contacts, each contact point's impulse ``(3, K, B)`` on its
-    body a, and the velocities ``(3, N + 1, B)`` that return the poses' drift off the joints: the forces without
-    the joint springs, the rigid tree's solve of armature, damping, limits and contacts (``torchsim.tree_solve``),
-    welds; the drift velocities are the joint springs' position term, applied to the poses alone (as a velocity it
-    leaked into the next substep's solve: on the states a trained hopper visits, one env step missed MuJoCo's
-    converged answer by 0.034 in root angular velocity, 0.023 with a quarter of the spring, 0.010 on the poses
-    alone, MuJoCo's own step 0.005)."""
+    """The articulated model's substep velocities, its contacts and each contact point's impulse ``(3, K, B)`` on
+    its body a: the forces without the joint springs, the rigid tree's solve of armature, damping, limits and
+    contacts (``torchsim.tree_solve``), welds."""
     inv, fr, q, force, torque = applied_forces(sys, bodies, ctrl, terms, h, springs=False)
-    after = integrator.velocity_update(sys, bodies, inv, force, torque, h)
-    after, con, p_lin = tree_solve.solve(sys, bodies, after, fr, inv.rot, q, h)
+    after, con, p_lin = tree_solve.solve(sys, bodies, force, torque, fr, inv.rot, q, h)
     if sys.welds:
         after = welds.impulses(sys, bodies, after, terms.loaded, h)
-    spring_force, spring_torque = joint_wrench(sys, bodies, fr, terms.joint_gain, h, inv, damped=False)
-    return after, con, p_lin, h * inv.mass * spring_force, h * spatial.matvec(inv.inertia, spring_torque)
+    return after, con, p_lin
 
 
 METHOD = Method("spring", step_terms, substep, default_substep_timestep=5e-4, contact_forces=contact_forces)
