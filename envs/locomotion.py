@@ -106,11 +106,14 @@ class Hopper(_PlanarWalker):
     Observation (11): ``q[1:]`` (torso height change, torso pitch, thigh/leg/foot angles), ``clip(qd, -10, 10)`` (6).
     Action (3). Reward: ``vx + 1 - 1e-3 |a|^2``. Terminates unless torso height > 0.7 m, |pitch| < 0.2 rad and
     every entry of ``(q[2:], qd)`` is within (-100, 100). Reset: U(-5e-3, 5e-3) on q and qd.
-    Versus MuJoCo (random actions, 0.25 s): root within 2.7 cm, travel 5.6 vs 8.3 cm; more substeps do not
-    shrink it: the gap is the contact model (impulses vs MuJoCo's soft contacts).
+    Physics: MuJoCo's Euler step on the rigid tree (``contact_model="articulated"``, one substep per 2 ms): its
+    0.5 s landing stays on MuJoCo's path to 0.2 % of MuJoCo's own timestep sensitivity
+    (``tests/test_articulated_contacts.py``), and the tuned PPO recipe's policy keeps 1.03 of its return in MuJoCo
+    (impulse contacts: 0.10; docs/physics.md, "Policy transfer").
     """
 
     model_file = "hopper.xml"
+    contact_model = "articulated"
     observation_size = 11
     healthy_z = (0.7, float("inf"))
     healthy_angle = (-0.2, 0.2)
