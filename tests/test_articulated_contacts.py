@@ -1,10 +1,9 @@
-"""The articulated model (``load_mjcf(contact_model="articulated")``, ``torchsim.tree_solve``): velocities, limits
-and soft contacts solved through the rigid tree, against MuJoCo, float64, eager.
+"""The articulated model (``load_mjcf(contact_model="articulated")``, ``torchsim.tree_solve``): MuJoCo's Euler step
+on the rigid tree, velocities, limits and soft contacts solved through it, against MuJoCo, float64, eager.
 
 A free body alone is its own tree, so there the articulated contacts are the soft ones (the soft tests' scenes,
-``tests/test_soft_contacts.py``, rerun here); on a robot the joints hold at the velocity level and a foot's impulse
-moves the whole tree, as MuJoCo's solve does: an actuated walker in the air and the hopper's landing then follow
-MuJoCo's.
+``tests/test_soft_contacts.py``, rerun here); on a robot the joints are exact and a foot's impulse moves the whole
+tree, as MuJoCo's solve does: an actuated walker in the air and the hopper's landing then take MuJoCo's steps.
 """
 
 import mujoco

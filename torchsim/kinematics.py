@@ -2,7 +2,8 @@
 
 ``forward`` places bodies from ``q, qd`` (used by ``init``). ``joint_frames`` measures every joint from body poses:
 its coordinates, velocities, world axes and constraint errors; the step uses it every substep and ``read_q``
-uses it to read ``q, qd`` back.
+uses it to read ``q, qd`` back. ``onto_tree`` composes the two: the articulated model's substep puts its integrated
+poses back onto the joints with it.
 
 Everything here is in the lanes layout (``torchsim.lanes``: components first, batch ``B`` last) except the public
 ``q, qd`` of ``read_q`` and ``forward`` and the public poses of ``anchor_gap`` and ``mj_body_poses``.
