@@ -27,9 +27,10 @@ from torchsim.system import System
 class Articulation(NamedTuple):
     """The joint-space inertia ``inertia (C, C, B)`` [kg, kg m, kg m^2] of the bodies at one pose (no armature:
     :func:`column_armature`), the Jacobians ``ang, vel (3, C, N, B)``: each body's angular velocity [rad/s] and COM
-    velocity [m/s] per unit rate of each column, and the columns themselves ``(3, C, B)``: each one's rotation axis
+    velocity [m/s] per unit rate of each column, the columns themselves ``(3, C, B)``: each one's rotation axis
     ``axis_ang`` (zero for a slide), translation axis ``axis_lin`` (zero for a hinge) and the point ``pivot`` [m] it
-    turns about (world)."""
+    turns about (world), and the bodies' world inertias ``inertia_world (3, 3, N, B)`` [kg m^2] they were built
+    from."""
 
     inertia: torch.Tensor
     ang: torch.Tensor
@@ -37,6 +38,7 @@ class Articulation(NamedTuple):
     axis_ang: torch.Tensor
     axis_lin: torch.Tensor
     pivot: torch.Tensor
+    inertia_world: torch.Tensor
 
 
 def tree_fields(jnt_child, jnt_parent, dof_flat, ball_joint, free_body, num_bodies: int, refusal: str | None) -> dict:
@@ -111,7 +113,7 @@ def articulation(sys: System, bodies: Bodies, frames: JointFrames, rot: torch.Te
     # sum over bodies of m v_c . v_d + w_c . I w_d, as broadcast products: (3, C, 1, N, B) x (3, 1, C, N, B)
     turned = spatial.matvec(inertia_world[:, :, None], ang_jac)  # (3, C, N, B): I_b w_c
     inertia = ((vel_jac * mass)[:, :, None] * vel_jac[:, None] + ang_jac[:, :, None] * turned[:, None]).sum((0, 3))
-    return Articulation(inertia, ang_jac, vel_jac, ang, lin, pivot)
+    return Articulation(inertia, ang_jac, vel_jac, ang, lin, pivot, inertia_world)
 
 
 def dof_axes(sys: System, frames: JointFrames) -> torch.Tensor:

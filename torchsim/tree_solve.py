@@ -52,18 +52,15 @@ def column_rates(sys: System, bodies: Bodies, frames: JointFrames) -> torch.Tens
 
 
 def column_impulse(sys: System, model: articulation.Articulation, start: Bodies, frames: JointFrames,
-                   rates: torch.Tensor, force: torch.Tensor, torque: torch.Tensor, rot: torch.Tensor,
-                   h: float) -> torch.Tensor:
+                   rates: torch.Tensor, force: torch.Tensor, torque: torch.Tensor, h: float) -> torch.Tensor:
     """``(C, B)``: ``J^T`` of the bodies' momenta after a substep ``h`` of the forces ``force, torque (3, N + 1, B)``
     (world, at the COMs), gravity and the gyroscopic torques ``-w x I w``, less the momenta of their velocity-product
     accelerations (:func:`articulation.velocity_product`): MuJoCo's ``M qd + h (tau - c)`` for ``start``'s bodies
-    (moving as the tree, at the columns' ``rates (C, B)``), ``rot (3, 3, N + 1, B)`` their rotations. Every term is
+    (moving as the tree, at the columns' ``rates (C, B)``; ``model`` at their poses). Every term is
     explicit, as MuJoCo's bias force is (not the spring method's per-body implicit gyroscopic step, which each
     body would take through its own inertia alone).
     """
-    n = sys.num_bodies
-    body_rot = rot[..., :n, :]
-    inertia_world = spatial.mm(body_rot, lanes.param(sys.body_inertia, 1, 2), spatial.transpose(body_rot))
+    n, inertia_world = sys.num_bodies, model.inertia_world
     mass = lanes.param(sys.body_mass, 1)
     bias = articulation.velocity_product(sys, model, start, frames, rates)
     w = start.xd_ang[:, :n]
@@ -95,7 +92,7 @@ def solve(sys: System, start: Bodies, force: torch.Tensor, torque: torch.Tensor,
     n_dof, n_columns, batch = sys.dof_flat.shape[0], model.inertia.shape[0], rot.shape[-1]
     rates = column_rates(sys, start, frames)
     armature = articulation.column_armature(sys)
-    tau = column_impulse(sys, model, start, frames, rates, force, torque, rot, h) + armature * rates
+    tau = column_impulse(sys, model, start, frames, rates, force, torque, h) + armature * rates
     if sys.ball_joint.shape[0]:
         tau = tau.index_add(0, torch.arange(n_dof, n_dof + 3 * sys.ball_joint.shape[0], device=tau.device),
                             ball_spring_impulse(sys, start, frames, h))
