@@ -113,6 +113,16 @@ def stopped_message(out_dir, overrides: list[str]) -> str:
             + " ".join([*kept, f"resume={last}"]))
 
 
+def stopped_by_ctrl_c(err: BaseException) -> bool:
+    """Whether ``err`` is Ctrl-C's ``KeyboardInterrupt`` or was raised while one unwound: a library's clean-up that
+    fails on the way out (a tensordict context manager's ``__exit__``) must not turn a stop into a crash."""
+    while err is not None:
+        if isinstance(err, KeyboardInterrupt):
+            return True
+        err = err.__context__
+    return False
+
+
 @hydra.main(config_path=CONFIG_DIR, config_name="config", version_base="1.3")
 def main(cfg: DictConfig) -> None:
     out_dir = HydraConfig.get().runtime.output_dir
@@ -125,7 +135,9 @@ def main(cfg: DictConfig) -> None:
     except TrainingDiverged as err:
         print(f"training diverged: {err}", file=sys.stderr)
         sys.exit(1)
-    except KeyboardInterrupt:
+    except BaseException as err:
+        if not stopped_by_ctrl_c(err):
+            raise
         print(stopped_message(out_dir, list(HydraConfig.get().overrides.task)), file=sys.stderr)
         sys.exit(130)
 

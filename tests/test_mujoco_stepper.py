@@ -32,21 +32,27 @@ def test_step_is_mujocos_step():
 
 def test_substeps_split_mujocos_step():
     """With ``substeps=4`` one call is four ``mj_step`` s of a quarter of the model's timestep, the control held
-    (the Ant starts on the floor: contacts act); the caller's model keeps its timestep; a substep count that is not
+    (the Ant starts standing on the floor: contacts act); the caller's model keeps its timestep; a substep count that is not
     a positive integer is refused."""
     probe = torchsim.envs.make("ant", dtype=torch.float64)
     dt = probe.mj_model.opt.timestep
     stepper = MujocoStepper(probe.base_sys, probe.mj_model, threads=2, substeps=4)
     assert probe.mj_model.opt.timestep == dt and stepper.model.opt.timestep == dt / 4
     env = torchsim.envs.make("ant", num_envs=2, dtype=torch.float64, stepper=stepper)
+    # a reset's start (0.46-0.64 m up) may still be in the air: start from the Ant settled on its feet by MuJoCo
+    rest = mujoco.MjData(probe.mj_model)
+    while rest.time < 1.0:
+        mujoco.mj_step(probe.mj_model, rest)
+    start = env.state._replace(q=torch.from_numpy(rest.qpos).expand(2, -1).clone(),
+                               qd=torch.from_numpy(rest.qvel).expand(2, -1).clone())
     ctrl = torch.linspace(-1, 1, 2 * 8, dtype=torch.float64).reshape(2, 8)
-    after = stepper(env.state, ctrl)
+    after = stepper(start, ctrl)
     m = env.mj_model.__copy__()
     m.opt.timestep = dt / 4
     d = mujoco.MjData(m)
     for b in range(2):
         mujoco.mj_resetData(m, d)
-        d.qpos[:], d.qvel[:], d.ctrl[:] = env.state.q[b].numpy(), env.state.qd[b].numpy(), ctrl[b].numpy()
+        d.qpos[:], d.qvel[:], d.ctrl[:] = rest.qpos, rest.qvel, ctrl[b].numpy()
         for _ in range(4):
             mujoco.mj_step(m, d)
         assert d.ncon > 0

@@ -15,7 +15,7 @@ from torchsim.algos.checkpoints import load_checkpoint
 from torchsim.algos.common import Run
 from torchsim.algos.distributed import Ranks
 from torchsim.algos.ppo import PPO
-from torchsim.algos.train import run
+from torchsim.algos.train import run, stopped_by_ctrl_c
 
 
 def logged_training(monkeypatch) -> list[dict]:
@@ -228,3 +228,20 @@ def test_ctrl_c_stops_a_run_with_the_command_that_continues_it(tmp_path):
                           timeout=300)
     assert done.returncode == 0, done.stderr[-3000:]
     assert load_checkpoint(tmp_path / "resumed" / "checkpoints" / "last.pt")["counters"]["env_steps"] == steps + 32
+
+
+def test_a_failure_while_ctrl_c_unwinds_is_still_a_stop():
+    """A library's clean-up that raises while Ctrl-C's KeyboardInterrupt unwinds through it (seen: a tensordict
+    context manager's ``__exit__``) is a stop, exit 130; an error with no interrupt behind it stays an error."""
+    def cleanup_fails_during(interrupt: BaseException):
+        try:
+            raise interrupt
+        except BaseException:
+            raise RuntimeError("Converting a tensordict to boolean value is not permitted")
+
+    with pytest.raises(RuntimeError) as during_ctrl_c:
+        cleanup_fails_during(KeyboardInterrupt())
+    with pytest.raises(RuntimeError) as during_an_error:
+        cleanup_fails_during(ValueError("a bug"))
+    assert stopped_by_ctrl_c(KeyboardInterrupt()) and stopped_by_ctrl_c(during_ctrl_c.value)
+    assert not stopped_by_ctrl_c(during_an_error.value) and not stopped_by_ctrl_c(SystemExit(1))
