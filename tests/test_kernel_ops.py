@@ -24,8 +24,10 @@ from torchsim.execution.kernel import emit_cpp, emit_cuda, program as program_mo
 from torchsim.execution.kernel.program import Layout, Program
 
 SPECIAL = [float("nan"), float("inf"), -float("inf"), 0.0, -0.0, 1e-30, -3.5, 2.0, 1e6]
-#: ``cpp-generic``: the C++ a CPU without AVX2 gets (16-byte generic vectors, the C library's functions lane by lane)
-EMITTERS = {"cpp": (emit_cpp, {}), "cpp-generic": (emit_cpp, {}), "cuda-host": (emit_cuda, {})}
+#: ``cpp-generic``: the C++ a CPU without AVX2 gets (16-byte generic vectors, the C library's functions lane by lane);
+#: ``cpp-large``: as a step past ``emit_cpp.LOOP_VECTORISED_UP_TO_BYTES`` compiles (no loop vectoriser)
+EMITTERS = {"cpp": (emit_cpp, {}), "cpp-generic": (emit_cpp, {}), "cpp-large": (emit_cpp, {}),
+            "cuda-host": (emit_cuda, {})}
 
 
 def _ops(x: torch.Tensor, y: torch.Tensor, p: torch.Tensor):
@@ -51,6 +53,8 @@ def kernel(request, tmp_path_factory):
         patch.setenv("TORCHSIM_CACHE_DIR", str(tmp_path_factory.mktemp("cache")))
         if name == "cpp-generic":
             patch.setattr(emit_cpp, "vector_bytes", lambda: 16)
+        if name == "cpp-large":
+            patch.setattr(emit_cpp, "LOOP_VECTORISED_UP_TO_BYTES", 0)
         probe = torch.ones(3, 2, dtype=dtype)
         graph = rows.row_graph(lambda xs: (_ops(xs[0], xs[1], xs[2]),), [probe])
         outputs = _ops(probe[0], probe[1], probe[2])
