@@ -4,7 +4,6 @@ Jacobian, gains, impedance and inverse inertia; two pendulums held together by a
 
 import mujoco
 import numpy as np
-import pytest
 import torch
 
 import torchsim
