@@ -8,8 +8,10 @@ contraction). Library functions may differ by an ulp or two (the bound: 4 ulps o
 root is IEEE's, correctly rounded, where torch's CPU kernel (MKL's) is within an ulp (it differs from the correctly
 rounded root in ~17% of random float32 values), and the transcendental functions call SLEEF's u10 (1-ulp) vector
 functions in C++ (the C library's, lane by lane, where a CPU lacks AVX2), the C library's in the CUDA kernel's host
-build (CUDA's math library on a GPU). The rows hold NaN, +-inf, +-0 and values across many magnitudes, so NaN handling (``minimum``/``maximum`` propagate it, as torch's do) is checked too;
-batches of 1, 5 and 37 envs cover whole and partial vector blocks, and a strided (batch-first) input.
+build (CUDA's math library on a GPU). The rows hold NaN, +-inf, +-0 and values across many magnitudes, so NaN
+handling (``minimum``/``maximum`` propagate it, as torch's do) and ``abs``'s sign bit are checked too; batches of 1,
+5 and 37 envs cover whole and partial vector blocks, and a strided (batch-first) input. The C++ is built three
+ways: for this CPU, for a CPU without AVX2, and as a step too large for GCC's loop vectoriser is.
 """
 
 import hashlib

@@ -32,8 +32,8 @@ def test_step_is_mujocos_step():
 
 def test_substeps_split_mujocos_step():
     """With ``substeps=4`` one call is four ``mj_step`` s of a quarter of the model's timestep, the control held
-    (the Ant starts standing on the floor: contacts act); the caller's model keeps its timestep; a substep count that is not
-    a positive integer is refused."""
+    (the Ant starts standing on the floor: contacts act); the caller's model keeps its timestep; a substep count
+    that is not a positive integer is refused."""
     probe = torchsim.envs.make("ant", dtype=torch.float64)
     dt = probe.mj_model.opt.timestep
     stepper = MujocoStepper(probe.base_sys, probe.mj_model, threads=2, substeps=4)

@@ -279,14 +279,15 @@ def build(code: str, what: str, key: str) -> pathlib.Path:
     return path_
 
 
-#: The Humanoid's step (the largest shipped) compiles in ~20 s on two cores; ten times that means a stuck compiler.
+#: The largest shipped step (the articulated Ant's, 10 MB) compiles in ~30 s on two cores; twenty times that means
+#: a stuck compiler.
 COMPILE_TIMEOUT_S = 600
 
 
 class Kernel:
-    """A built :class:`Program` (its library at ``library_path``): ``kernel(batch, inputs, outputs, iterations)`` runs it
-    on envs ``0:batch`` of tensors laid out as the Program's; batches of several blocks per thread are split between
-    ``threads`` OpenMP threads (the call releases the GIL, and envs never interact, so the shares need no
+    """A built :class:`Program` (its library at ``library_path``): ``kernel(batch, inputs, outputs, iterations)``
+    runs it on envs ``0:batch`` of tensors laid out as the Program's; batches of several blocks per thread are split
+    between ``threads`` OpenMP threads (the call releases the GIL, and envs never interact, so the shares need no
     synchronisation).
 
     The threads are torch's intra-op pool (OpenMP), not a pool of Python threads of its own: two pools on the same
