@@ -38,16 +38,15 @@ def test_substeps_split_mujocos_step():
     dt = probe.mj_model.opt.timestep
     stepper = MujocoStepper(probe.base_sys, probe.mj_model, threads=2, substeps=4)
     assert probe.mj_model.opt.timestep == dt and stepper.model.opt.timestep == dt / 4
-    env = torchsim.envs.make("ant", num_envs=2, dtype=torch.float64, stepper=stepper)
     # a reset's start (0.46-0.64 m up) may still be in the air: start from the Ant settled on its feet by MuJoCo
     rest = mujoco.MjData(probe.mj_model)
     while rest.time < 1.0:
         mujoco.mj_step(probe.mj_model, rest)
-    start = env.state._replace(q=torch.from_numpy(rest.qpos).expand(2, -1).clone(),
-                               qd=torch.from_numpy(rest.qvel).expand(2, -1).clone())
+    start = torchsim.init(probe.base_sys, torch.from_numpy(rest.qpos).expand(2, -1).clone(),
+                          torch.from_numpy(rest.qvel).expand(2, -1).clone())
     ctrl = torch.linspace(-1, 1, 2 * 8, dtype=torch.float64).reshape(2, 8)
     after = stepper(start, ctrl)
-    m = env.mj_model.__copy__()
+    m = probe.mj_model.__copy__()
     m.opt.timestep = dt / 4
     d = mujoco.MjData(m)
     for b in range(2):
