@@ -81,3 +81,14 @@ def test_row_graphs_refuse_the_batch_axis():
     """Ops along the batch axis cannot be unrolled: a clear error, not a wrong graph."""
     with pytest.raises(NotImplementedError, match="batch axis"):
         rows.row_graph(lambda x: (x.sum(-1, keepdim=True).expand(3, 4),), [torch.ones(3, 4)])
+
+
+def test_row_graphs_refuse_a_constant_that_differs_between_envs():
+    """A row graph serves every batch size, so a value per env that no input holds (a constant made at the traced
+    batch size) is refused by name; one that every env shares folds into the graph as a number."""
+    with pytest.raises(NotImplementedError, match="constant with a batch axis"):
+        rows.row_graph(lambda x: (x * torch.linspace(0, 1, x.shape[-1]),), [torch.ones(3, 4)])
+    graph = rows.row_graph(lambda x: (x * torch.full((x.shape[-1],), 2.0),), [torch.ones(3, 4)])
+    assert not [n for n in graph.graph.nodes if n.op == "get_attr"]
+    torch.testing.assert_close(graph(torch.arange(15.0).view(3, 5)), (2 * torch.arange(15.0).view(3, 5),),
+                               rtol=0, atol=0)

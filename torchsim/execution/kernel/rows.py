@@ -23,7 +23,7 @@ import torch
 from torch._guards import TracingContext, tracing
 from torch._subclasses.fake_tensor import FakeTensorMode
 from torch.fx import GraphModule, Interpreter
-from torch.fx.experimental.proxy_tensor import disable_proxy_modes_tracing, make_fx
+from torch.fx.experimental.proxy_tensor import make_fx
 
 from torchsim import spatial
 from torchsim.lanes import per_env
@@ -58,11 +58,162 @@ def _map(fn, *arrays) -> np.ndarray:
 
 
 class Rows:
-    """A lanes tensor ``(*S, B)`` as an object array of shape ``S`` whose elements are rows: ``(B,)`` or ``(1,)``
-    tensors, or Python numbers where the value is a model constant."""
+    """A lanes tensor ``(*S, B)`` as an object array of shape ``S`` whose elements are rows (:class:`_Row`: ``(B,)``
+    or ``(1,)`` values of the graph being built), or Python numbers where the value is a model constant."""
 
     def __init__(self, cells: np.ndarray):
         self.cells = cells
+
+
+class _Builder:
+    """The row graph being built: an FX graph whose nodes are recorded directly, each with its value's metadata (a
+    meta tensor, as ``make_fx`` records them). Recording the articulated Ant's ~160k row ops this way takes ~7 s;
+    tracing them through ``make_fx``'s proxy and fake tensors took ~50 s."""
+
+    def __init__(self):
+        self.graph = torch.fx.Graph()
+        self.metas: dict = {}  # an op's result metadata by its arguments' shapes and dtypes
+
+    def call(self, op, args: tuple, kwargs: dict | None = None) -> "_Row":
+        kwargs = kwargs or {}
+        node = self.graph.create_node("call_function", op, _nodes(args), _nodes(kwargs),
+                                      name=op.__name__.split(".")[0])  # as make_fx names them: mul, mul_1, ...
+        node.meta["val"] = self.meta(op, args, kwargs)
+        return _Row(self, node)
+
+    def meta(self, op, args: tuple, kwargs: dict):
+        key = (op, _signature(args), _signature(kwargs))
+        if key not in self.metas:
+            on_meta = {k: "meta" if k == "device" else v for k, v in kwargs.items()}
+            self.metas[key] = op(*_metas(args), **_metas(on_meta))
+        return self.metas[key]
+
+    def input(self, name: str, probe: torch.Tensor | None) -> np.ndarray | None:
+        """A placeholder for input ``probe``, and its rows: a view as ``(rows, B)`` unbound (what ``reshape`` and
+        ``unbind`` record for a contiguous tensor, the form ``program`` reads)."""
+        node = self.graph.placeholder(name)
+        node.meta["val"] = None if probe is None else torch.empty_like(probe, device="meta")
+        if probe is None:
+            return None
+        if not probe.is_contiguous():
+            raise Unsupported("row graphs read contiguous inputs")
+        flat = self.call(aten.view.default, (_Row(self, node), [-1 if probe.numel() else 0, probe.shape[-1]]))
+        count = flat.node.meta["val"].shape[0]
+        rows = self.graph.call_function(aten.unbind.int, (flat.node,))
+        rows.meta["val"] = [flat.node.meta["val"][0]] * count
+        cells = np.empty(count, dtype=object)
+        for i in range(count):
+            item = self.graph.call_function(operator.getitem, (rows, i))
+            item.meta["val"] = rows.meta["val"][i]
+            cells[i] = _Row(self, item)
+        return cells.reshape(probe.shape[:-1])
+
+    def constant(self, value: torch.Tensor) -> "_Row":
+        """A row that differs between envs although no input holds it (a constant with a batch axis): kept as a
+        node only so that the graph can refuse it if it is used."""
+        node = self.graph.get_attr("per_env_constant")
+        node.meta["val"] = torch.empty_like(value, device="meta")
+        return _Row(self, node)
+
+
+class _Row:
+    """One row of the graph being built: Python's operators on it record the aten ops that torch's tensor operators
+    dispatch to (``2 - x`` is ``rsub``, ``2 / x`` a reciprocal times 2), so the graph holds the ops a traced one
+    would."""
+
+    __slots__ = ("builder", "node")
+
+    def __init__(self, builder: _Builder, node: torch.fx.Node):
+        self.builder, self.node = builder, node
+
+    @property
+    def shape(self) -> torch.Size:
+        return self.node.meta["val"].shape
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.node.meta["val"].dtype
+
+    def __mul__(self, other):
+        return _call(aten.mul.Tensor, self, other)
+
+    def __add__(self, other):
+        return _call(aten.add.Tensor, self, other)
+
+    __rmul__, __radd__ = __mul__, __add__
+
+    def __sub__(self, other):
+        return _call(aten.sub.Tensor, self, other)
+
+    def __rsub__(self, other):
+        return _call(aten.rsub.Scalar, self, other)
+
+    def __truediv__(self, other):
+        return _call(aten.div.Tensor, self, other)
+
+    def __rtruediv__(self, other):
+        return _call(aten.mul.Tensor, _call(aten.reciprocal.default, self), other)
+
+    def __neg__(self):
+        return _call(aten.neg.default, self)
+
+    def __and__(self, other):
+        return _call(aten.bitwise_and.Tensor, self, other)
+
+    def _compare(tensor_op, scalar_op):
+        return lambda self, other: _call(tensor_op if isinstance(other, _Row) else scalar_op, self, other)
+
+    __gt__ = _compare(aten.gt.Tensor, aten.gt.Scalar)
+    __ge__ = _compare(aten.ge.Tensor, aten.ge.Scalar)
+    __lt__ = _compare(aten.lt.Tensor, aten.lt.Scalar)
+    __le__ = _compare(aten.le.Tensor, aten.le.Scalar)
+    __ne__ = _compare(aten.ne.Tensor, aten.ne.Scalar)
+    __hash__ = object.__hash__
+
+
+def _call(op, *args, **kwargs) -> _Row:
+    """``op`` recorded on rows (and numbers)."""
+    builder = next(x.builder for x in args if isinstance(x, _Row))
+    return builder.call(op, args, kwargs)
+
+
+def _scalar(builder: _Builder, value, like: _Row | None) -> _Row:
+    """A number where an op takes a tensor: a 0-d tensor of ``like``'s dtype (bools stay masks)."""
+    dtype = torch.bool if isinstance(value, bool) else like.dtype if like is not None else torch.get_default_dtype()
+    return builder.call(aten.scalar_tensor.default, (value,), {"dtype": dtype, "layout": torch.strided,
+                                                                "device": torch.device("cpu")})
+
+
+def _nodes(x):
+    if isinstance(x, _Row):
+        return x.node
+    if isinstance(x, (list, tuple)):
+        return type(x)(_nodes(v) for v in x)
+    if isinstance(x, dict):
+        return {k: _nodes(v) for k, v in x.items()}
+    return x
+
+
+def _metas(x):
+    if isinstance(x, _Row):
+        return x.node.meta["val"]
+    if isinstance(x, (list, tuple)):
+        return type(x)(_metas(v) for v in x)
+    if isinstance(x, dict):
+        return {k: _metas(v) for k, v in x.items()}
+    return x
+
+
+def _signature(x):
+    """What an op's result metadata depends on: shapes and dtypes of rows, types of numbers, other values."""
+    if isinstance(x, _Row):
+        meta = x.node.meta["val"]
+        return "row", tuple(meta.shape), meta.dtype
+    if isinstance(x, (list, tuple)):
+        return tuple(_signature(v) for v in x)
+    if isinstance(x, dict):
+        return tuple((k, _signature(v)) for k, v in sorted(x.items()))
+    return type(x) if _is_num(x) else x
 
 
 class Moved:
@@ -104,30 +255,33 @@ def _div(a, b):
     return 0.0 if _is_num(a) and a == 0 and not _is_num(b) else a / b
 
 
-def _unary(on_number, on_row):
-    return lambda a: on_number(a) if _is_num(a) else on_row(a)
+def _unary(on_number, op):
+    return lambda a: on_number(a) if _is_num(a) else _call(op, a)
 
 
 def _where(cond, a, b):
     if _is_num(cond):
         return a if cond else b
-    return a if _is_num(a) and _is_num(b) and a == b else torch.where(cond, a, b)
+    if _is_num(a) and _is_num(b) and a == b:
+        return a
+    like = b if isinstance(b, _Row) else a if isinstance(a, _Row) else None
+    return _call(aten.where.self, cond, *(_scalar(cond.builder, x, like) if _is_num(x) else x for x in (a, b)))
 
 
 def _clamp(a, lo=None, hi=None):
     if _is_num(a):
         return min(max(a, -math.inf if lo is None else lo), math.inf if hi is None else hi)
-    return torch.clamp(a, lo, hi)
+    return _call(aten.clamp.default, a, lo, *([] if hi is None else [hi]))
 
 
-def _binary(on_numbers, on_rows):
+def _binary(on_numbers, op):
     """An op that needs rows on both sides: a number meeting a row is made a full row."""
-    def op(a, b):
+    def fn(a, b):
         if _is_num(a) and _is_num(b):
             return on_numbers(a, b)
-        a = torch.full_like(b, a) if _is_num(a) else a
-        return on_rows(a, b if not _is_num(b) else torch.full_like(a, b))
-    return op
+        a = _call(aten.full_like.default, b, a, pin_memory=False) if _is_num(a) else a
+        return _call(op, a, _call(aten.full_like.default, a, b, pin_memory=False) if _is_num(b) else b)
+    return fn
 
 
 def _and(a, b):
@@ -140,25 +294,25 @@ def _and(a, b):
 def _to(a, dtype):
     if _is_num(a):
         return float(a) if dtype.is_floating_point else bool(a) if dtype == torch.bool else int(a)
-    return a.to(dtype)
+    return _call(aten._to_copy.default, a, dtype=dtype)
 
 
 ELEMENTWISE = {
     aten.mul.Tensor: _mul, aten.add.Tensor: _add, aten.sub.Tensor: _sub, aten.div.Tensor: _div,
     aten.rsub.Scalar: lambda a, b, alpha=1: _sub(b, a, alpha),
-    aten.neg.default: _unary(operator.neg, torch.neg),
-    aten.rsqrt.default: _unary(lambda a: 1 / math.sqrt(a), torch.rsqrt),
-    aten.sqrt.default: _unary(math.sqrt, torch.sqrt),
-    aten.reciprocal.default: _unary(lambda a: 1 / a, torch.reciprocal),
-    aten.relu.default: _unary(lambda a: max(a, 0.0), torch.relu),
-    aten.cos.default: _unary(math.cos, torch.cos),
-    aten.sin.default: _unary(math.sin, torch.sin),
+    aten.neg.default: _unary(operator.neg, aten.neg.default),
+    aten.rsqrt.default: _unary(lambda a: 1 / math.sqrt(a), aten.rsqrt.default),
+    aten.sqrt.default: _unary(math.sqrt, aten.sqrt.default),
+    aten.reciprocal.default: _unary(lambda a: 1 / a, aten.reciprocal.default),
+    aten.relu.default: _unary(lambda a: max(a, 0.0), aten.relu.default),
+    aten.cos.default: _unary(math.cos, aten.cos.default),
+    aten.sin.default: _unary(math.sin, aten.sin.default),
     aten.where.self: _where,
     aten.clamp.default: _clamp,
     aten.clamp_min.default: lambda a, lo: _clamp(a, lo),
-    aten.minimum.default: _binary(min, torch.minimum),
-    aten.maximum.default: _binary(max, torch.maximum),
-    aten.atan2.default: _binary(math.atan2, torch.atan2),
+    aten.minimum.default: _binary(min, aten.minimum.default),
+    aten.maximum.default: _binary(max, aten.maximum.default),
+    aten.atan2.default: _binary(math.atan2, aten.atan2.default),
     aten.gt.Scalar: operator.gt, aten.gt.Tensor: operator.gt,
     aten.ge.Scalar: operator.ge, aten.ge.Tensor: operator.ge,
     aten.lt.Scalar: operator.lt, aten.lt.Tensor: operator.lt,
@@ -175,18 +329,22 @@ def _pointwise(op):
     takes_tensor = [isinstance(a.type, torch.TensorType) for a in op._schema.arguments]
 
     def fn(*xs, **kwargs):
-        rows = [x for x in xs if isinstance(x, torch.Tensor)]
-        dtype = rows[0].dtype if rows else torch.float64
-        args = [torch.tensor(x, dtype=dtype) if _is_num(x) and tensor else x for x, tensor in zip(xs, takes_tensor)]
+        rows = [x for x in xs if isinstance(x, _Row)]
         if not rows:
-            with disable_proxy_modes_tracing():
-                return op(*args, **kwargs).item()
-        return op(*args, **kwargs)
+            return op(*(torch.tensor(x, dtype=torch.float64) if _is_num(x) and tensor else x
+                        for x, tensor in zip(xs, takes_tensor)), **kwargs).item()
+        return _call(op, *(_scalar(rows[0].builder, x, rows[0]) if _is_num(x) and tensor else x
+                           for x, tensor in zip(xs, takes_tensor)), **kwargs)
     return fn
 
 
 class _RowInterpreter(Interpreter):
-    """Runs an aten graph of lanes tensors on :class:`Rows`; ops on constants alone run as they are (folding)."""
+    """Runs an aten graph of lanes tensors on :class:`Rows`, recording the row ops into ``builder``; ops on
+    constants alone run as they are (folding)."""
+
+    def __init__(self, graph: GraphModule, builder: _Builder):
+        super().__init__(graph)
+        self.builder = builder
 
     def cells(self, x) -> np.ndarray:
         if isinstance(x, Rows):
@@ -201,13 +359,11 @@ class _RowInterpreter(Interpreter):
                 values.item())
         # a constant with a batch axis (e.g. zeros made batch-sized for a stack): rows, or numbers where a row is
         # one value repeated, so that it folds like any other constant
-        rows = x.reshape(-1, x.shape[-1]).unbind(0)
-        with disable_proxy_modes_tracing():
-            flat = x.reshape(-1, x.shape[-1])
-            uniform = (flat == flat[:, :1]).all(1).tolist()
-            firsts = flat[:, 0].tolist()
-        out = np.empty(len(rows), dtype=object)
-        out[:] = [first if same else row for row, same, first in zip(rows, uniform, firsts)]
+        flat = x.reshape(-1, x.shape[-1])
+        uniform = (flat == flat[:, :1]).all(1).tolist()
+        firsts = flat[:, 0].tolist()
+        out = np.empty(len(flat), dtype=object)
+        out[:] = [first if same else self.builder.constant(row) for row, same, first in zip(flat, uniform, firsts)]
         return out.reshape(x.shape[:-1])
 
     def run_node(self, node):
@@ -220,8 +376,7 @@ class _RowInterpreter(Interpreter):
         if any(isinstance(x, Moved) for x in flat) and node.target is not aten.permute.default:
             raise Unsupported(f"row graphs keep the batch axis last ({node.target} on a batch-first tensor)")
         if not any(isinstance(x, (Rows, Moved)) for x in flat):
-            with disable_proxy_modes_tracing():
-                return node.target(*args, **kwargs)
+            return node.target(*args, **kwargs)
         if node.target in ELEMENTWISE or torch.Tag.pointwise in node.target.tags:
             fn = ELEMENTWISE.get(node.target) or _pointwise(node.target)
             tensors = [self.cells(a) for a in args]
@@ -385,25 +540,17 @@ def row_graph(fn, args: list) -> GraphModule:
         lanes_graph = _make_fx(fn, probes)
     lanes_graph.graph.eliminate_dead_code()
     outputs = fn(*probes)
-
-    def rows_fn(*inputs):
-        rows = [x if x is None else Rows(_input_cells(x)) for x in inputs]
-        results = _RowInterpreter(lanes_graph).run(*rows)
-        return tuple(_stack_rows(r.cells, like) for r, like in zip(results, outputs))
-
-    graph = _make_fx(rows_fn, probes)
-    graph.graph.eliminate_dead_code()
-    # drop the constants that folding left unused: inductor passes every buffer to the compiled code, and ~190
-    # unused ones cost ~45 us of a ~70 us call at a small batch
-    used = {node.target for node in graph.graph.nodes if node.op == "get_attr"}
-    for name in [name for name, _ in graph.named_buffers() if name not in used]:
-        delattr(graph, name)
-    _batch_sizes_symbolic(graph, args)
-    for node in graph.graph.nodes:  # every constant its own storage: a higher-order op rejects aliased inputs
-        if node.op == "get_attr" and isinstance(getattr(graph, node.target), torch.Tensor):
-            setattr(graph, node.target, getattr(graph, node.target).clone())
-    graph.recompile()
-    return graph
+    # the lanes graph run on rows records the row graph directly (a second make_fx over every row op would take
+    # minutes on the articulated models' ~160k)
+    builder = _Builder()
+    inputs = [builder.input(f"arg{i}", x) for i, x in enumerate(probes)]
+    results = _RowInterpreter(lanes_graph, builder).run(*(x if x is None else Rows(x) for x in inputs))
+    builder.graph.output(_nodes(tuple(_stack_rows(builder, r.cells, like) for r, like in zip(results, outputs))))
+    builder.graph.eliminate_dead_code()
+    if any(node.op == "get_attr" for node in builder.graph.nodes):
+        raise Unsupported("row graphs cannot hold a constant with a batch axis (one value per env)")
+    _batch_sizes_symbolic(builder.graph, args)
+    return GraphModule(torch.nn.Module(), builder.graph)
 
 
 def _make_fx(fn, probes: list) -> GraphModule:
@@ -419,54 +566,40 @@ def _probe(x: torch.Tensor | None) -> torch.Tensor | None:
     return x[..., :1].expand(*x.shape[:-1], TRACE_BATCH).contiguous() if per_env(x) else x
 
 
-def _batch_sizes_symbolic(graph: GraphModule, args: list) -> None:
+def _batch_sizes_symbolic(graph: torch.fx.Graph, args: list) -> None:
     """Replace ``TRACE_BATCH`` in the size arguments of ``graph``'s ops (views, expands, fills) by the batch size
     of its first ``per_env`` input, read when the graph runs."""
-    for node in list(graph.graph.nodes):
-        constant = getattr(graph, node.target) if node.op == "get_attr" else None
-        if isinstance(constant, torch.Tensor) and TRACE_BATCH in constant.shape:
-            if constant.numel():
-                raise Unsupported("row graphs cannot hold a constant with a batch axis (one value per env)")
-            # an empty one (a model without hinges has no hinge rows): one env's, expanded to the batch's size when
-            # the graph runs
-            setattr(graph, node.target, constant[..., :1].clone())
-            with graph.graph.inserting_after(node):
-                empty = graph.graph.call_function(aten.expand.default, (node, list(constant.shape)))
-            node.replace_all_uses_with(empty, delete_user_cb=lambda user: user is not empty)
     first = next((i for i, x in enumerate(args) if per_env(x)), None)
     if first is None:  # a batch of one env: nothing to replace
         return
-    placeholder = [n for n in graph.graph.nodes if n.op == "placeholder"][first]
-    with graph.graph.inserting_after(placeholder):
-        batch = graph.graph.call_function(aten.sym_size.int, (placeholder, args[first].ndim - 1))
+    placeholder = [n for n in graph.nodes if n.op == "placeholder"][first]
+    with graph.inserting_after(placeholder):
+        batch = graph.call_function(aten.sym_size.int, (placeholder, args[first].ndim - 1))
 
     def sizes(a):
         if isinstance(a, (list, tuple)):
             return type(a)(batch if type(v) is int and v == TRACE_BATCH else sizes(v) for v in a)
         return a
 
-    for node in graph.graph.nodes:
+    for node in graph.nodes:
         if node.op == "call_function" and node is not batch:
             node.args = tuple(sizes(a) for a in node.args)
             node.kwargs = {k: sizes(v) for k, v in node.kwargs.items()}
 
 
-def _input_cells(x: torch.Tensor) -> np.ndarray:
-    rows = x.reshape(-1, x.shape[-1]).unbind(0)
-    cells = np.empty(len(rows), dtype=object)
-    cells[:] = list(rows)
-    return cells.reshape(x.shape[:-1])
-
-
-def _stack_rows(cells: np.ndarray, like: torch.Tensor) -> torch.Tensor:
+def _stack_rows(builder: _Builder, cells: np.ndarray, like: torch.Tensor) -> _Row:
     """Rows back into a tensor shaped like ``like``; stacked level by level, so no output is a view."""
+    batch = like.shape[-1]
+    options = {"dtype": like.dtype, "device": like.device, "pin_memory": False}
+
     def row(r):
         if _is_num(r):
-            return torch.full(like.shape[-1:], r, dtype=like.dtype, device=like.device)
-        return r.expand(like.shape[-1]) if r.shape[-1] != like.shape[-1] else r
+            return builder.call(aten.full.default, ([batch], r), options)
+        return builder.call(aten.expand.default, (r, [batch])) if r.shape[-1] != batch else r
 
     if cells.ndim == 0:
-        return row(cells[()]).clone()
+        return builder.call(aten.clone.default, (row(cells[()]),))
     if cells.size == 0:  # an empty output (a model without hinge dofs: (0, B) rates)
-        return torch.zeros_like(like)
-    return torch.stack([row(r) if cells.ndim == 1 else _stack_rows(r, like[0]) for r in cells])
+        return builder.call(aten.full.default, (list(like.shape), 0.0), options)
+    return builder.call(aten.stack.default, ([row(r) if cells.ndim == 1 else _stack_rows(builder, r, like[0])
+                                              for r in cells],))
