@@ -97,7 +97,7 @@ def test_kernel_and_fallback_steppers_match_eager_side_by_side(tmp_path, monkeyp
     sys, state, ctrl = _setup(method)
     looped = torchsim.Stepper(sys, part_size=2, threads=2, backend="aot_eager")
     with monkeypatch.context() as patch:
-        patch.delattr(rows._RowInterpreter, "_op_cat_default")
+        patch.delattr(rows._RowOps, "_op_cat_default")
         with pytest.warns(UserWarning) as warned:
             looped_states, _ = _compiled_steps(looped, state, ctrl, steps=1)
     messages = [str(w.message) for w in warned if "cannot run as the" in str(w.message)]

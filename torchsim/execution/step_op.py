@@ -43,7 +43,7 @@ def _step(handle: int, tensors: list[torch.Tensor]) -> list[torch.Tensor]:
         stepper = stepper.for_system(stepper.sys.with_parameters(stepper.per_env, params))
     if stepper.needs_building:
         # built on a thread of its own: this thread runs an operator's implementation, with the autograd dispatch
-        # keys excluded, and the kernel's row tracing (make_fx) then records ops it does not know
+        # keys excluded, and the kernel's row recording (rows.row_graph) then meets ops it does not know
         with concurrent.futures.ThreadPoolExecutor(1) as pool:
             pool.submit(stepper.build).result()
     inputs = {id(x) for x in tensors}  # an operator's outputs may not be its inputs (a fallback may pass one on)

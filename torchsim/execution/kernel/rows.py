@@ -7,12 +7,18 @@ the arithmetic (a joint mode of 0 removes the terms it multiplies). What is left
 ops on rows, which ``program`` lowers to its row-op contract and the emitters turn into one loop over the batch whose
 intermediates stay in registers.
 
-Tensors the traced function closes over (the System's shared values) are baked into the graph as constants; per-env
+How: the function runs once on lanes tensors (``_Lanes``) whose values are arrays of rows. Every aten op on them
+runs the interpreter's rule for that op (``_RowOps``): views and indexing rearrange the arrays, elementwise ops map
+over their elements, and each op on rows is recorded as a node of the row graph (``_Builder``), with the metadata
+``program`` reads. No graph of lanes ops is traced first: the articulated Ant's step (~120k lanes ops, ~160k row
+ops) is recorded in ~15 s, against ~100 s through two ``make_fx`` traces.
+
+Tensors the function closes over (the System's shared values) are baked into the graph as constants; per-env
 parameters enter as lanes inputs. The small axes are static; the batch size is not, so one graph serves a training
 batch and a small evaluation batch alike.
 
-The module runs past 400 lines because its two halves are one mechanism: the interpreter's rule for each aten op
-on rows, and the tracing around it that turns a lanes function into a row graph.
+The module runs past 400 lines because its parts are one mechanism: the interpreter's rule for each aten op on
+rows, the lanes tensors that route ops to it, and the builder that records what it does.
 """
 
 import math
@@ -20,10 +26,7 @@ import operator
 
 import numpy as np
 import torch
-from torch._guards import TracingContext, tracing
-from torch._subclasses.fake_tensor import FakeTensorMode
-from torch.fx import GraphModule, Interpreter
-from torch.fx.experimental.proxy_tensor import make_fx
+from torch.fx import GraphModule
 
 from torchsim import spatial
 from torchsim.lanes import per_env
@@ -67,8 +70,7 @@ class Rows:
 
 class _Builder:
     """The row graph being built: an FX graph whose nodes are recorded directly, each with its value's metadata (a
-    meta tensor, as ``make_fx`` records them). Recording the articulated Ant's ~160k row ops this way takes ~7 s;
-    tracing them through ``make_fx``'s proxy and fake tensors took ~50 s."""
+    meta tensor, as ``make_fx`` records them; computed once per distinct signature)."""
 
     def __init__(self):
         self.graph = torch.fx.Graph()
@@ -82,6 +84,8 @@ class _Builder:
         return _Row(self, node)
 
     def meta(self, op, args: tuple, kwargs: dict):
+        """``op``'s result metadata for these arguments (rows, lanes tensors, constants), by running it on meta
+        tensors once per signature."""
         key = (op, _signature(args), _signature(kwargs))
         if key not in self.metas:
             on_meta = {k: "meta" if k == "device" else v for k, v in kwargs.items()}
@@ -98,11 +102,10 @@ class _Builder:
         if not probe.is_contiguous():
             raise Unsupported("row graphs read contiguous inputs")
         flat = self.call(aten.view.default, (_Row(self, node), [-1 if probe.numel() else 0, probe.shape[-1]]))
-        count = flat.node.meta["val"].shape[0]
         rows = self.graph.call_function(aten.unbind.int, (flat.node,))
-        rows.meta["val"] = [flat.node.meta["val"][0]] * count
-        cells = np.empty(count, dtype=object)
-        for i in range(count):
+        rows.meta["val"] = list(flat.node.meta["val"].unbind(0))
+        cells = np.empty(len(rows.meta["val"]), dtype=object)
+        for i in range(len(cells)):
             item = self.graph.call_function(operator.getitem, (rows, i))
             item.meta["val"] = rows.meta["val"][i]
             cells[i] = _Row(self, item)
@@ -197,6 +200,10 @@ def _nodes(x):
 def _metas(x):
     if isinstance(x, _Row):
         return x.node.meta["val"]
+    if isinstance(x, _Lanes):
+        return x.meta
+    if isinstance(x, torch.Tensor):  # a constant; 0-d ones stay (a meta op takes CPU scalars, as a CUDA op does)
+        return x.to("meta") if x.ndim else x
     if isinstance(x, (list, tuple)):
         return type(x)(_metas(v) for v in x)
     if isinstance(x, dict):
@@ -205,15 +212,47 @@ def _metas(x):
 
 
 def _signature(x):
-    """What an op's result metadata depends on: shapes and dtypes of rows, types of numbers, other values."""
-    if isinstance(x, _Row):
-        meta = x.node.meta["val"]
-        return "row", tuple(meta.shape), meta.dtype
+    """What an op's result metadata depends on: shapes, strides and dtypes of tensors, the type of a float (the
+    value of an int: it may be a dim or a size), other values."""
+    if isinstance(x, (_Row, torch.Tensor)):
+        meta = _metas(x)
+        return type(x), tuple(meta.shape), meta.stride(), meta.dtype
     if isinstance(x, (list, tuple)):
         return tuple(_signature(v) for v in x)
     if isinstance(x, dict):
         return tuple((k, _signature(v)) for k, v in sorted(x.items()))
-    return type(x) if _is_num(x) else x
+    return float if isinstance(x, float) else x
+
+
+class _Lanes(torch.Tensor):
+    """A lanes tensor while a row graph is recorded: the tensor's metadata, and its value as :class:`Rows` (or
+    :class:`Moved`). Every aten op on it runs the row interpreter's rule for that op (``_RowOps.call``), so the
+    function runs once, on rows, with no graph of lanes ops in between."""
+
+    @staticmethod
+    def __new__(cls, value, meta: torch.Tensor, ops: "_RowOps"):
+        x = torch.Tensor._make_wrapper_subclass(cls, meta.shape, strides=meta.stride(), dtype=meta.dtype,
+                                                device=ops.device)
+        x.value, x.meta, x.ops = value, meta, ops
+        return x
+
+    __torch_function__ = torch._C._disabled_torch_function_impl
+
+    @classmethod
+    def __torch_dispatch__(cls, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        lanes = next(x for a in (*args, *kwargs.values()) for x in (a if isinstance(a, (list, tuple)) else [a])
+                     if isinstance(x, _Lanes))
+        return lanes.ops.call(func, args, kwargs)
+
+
+def _values(x):
+    """The rows (or numbers, constants) that the lanes tensors in ``x`` hold."""
+    if isinstance(x, _Lanes):
+        return x.value
+    if isinstance(x, (list, tuple)):
+        return type(x)(_values(v) for v in x)
+    return x
 
 
 class Moved:
@@ -338,13 +377,19 @@ def _pointwise(op):
     return fn
 
 
-class _RowInterpreter(Interpreter):
-    """Runs an aten graph of lanes tensors on :class:`Rows`, recording the row ops into ``builder``; ops on
-    constants alone run as they are (folding)."""
+class _RowOps:
+    """The row interpreter: each aten op on lanes tensors (:class:`_Lanes`) done on their rows, the row ops
+    recorded into ``builder``; indexing, views and concatenations are bookkeeping on the arrays of rows."""
 
-    def __init__(self, graph: GraphModule, builder: _Builder):
-        super().__init__(graph)
-        self.builder = builder
+    def __init__(self, builder: _Builder, device: torch.device):
+        self.builder, self.device = builder, device
+
+    def call(self, func, args: tuple, kwargs: dict):
+        meta = self.builder.meta(func, args, kwargs)
+        result = self.run(func, _values(args), {k: _values(v) for k, v in kwargs.items()}, meta)
+        if isinstance(meta, torch.Tensor):
+            return _Lanes(result, meta, self)
+        return [_Lanes(value, m, self) for value, m in zip(result, meta)]  # unbind, split
 
     def cells(self, x) -> np.ndarray:
         if isinstance(x, Rows):
@@ -366,26 +411,18 @@ class _RowInterpreter(Interpreter):
         out[:] = [first if same else self.builder.constant(row) for row, same, first in zip(flat, uniform, firsts)]
         return out.reshape(x.shape[:-1])
 
-    def run_node(self, node):
-        if node.op != "call_function":
-            return super().run_node(node)
-        args, kwargs = self.fetch_args_kwargs_from_env(node)
-        if node.target is operator.getitem:
-            return args[0][args[1]]
+    def run(self, target, args: tuple, kwargs: dict, meta):
         flat = [y for x in (*args, *kwargs.values()) for y in (x if isinstance(x, (list, tuple)) else [x])]
-        if any(isinstance(x, Moved) for x in flat) and node.target is not aten.permute.default:
-            raise Unsupported(f"row graphs keep the batch axis last ({node.target} on a batch-first tensor)")
-        if not any(isinstance(x, (Rows, Moved)) for x in flat):
-            return node.target(*args, **kwargs)
-        if node.target in ELEMENTWISE or torch.Tag.pointwise in node.target.tags:
-            fn = ELEMENTWISE.get(node.target) or _pointwise(node.target)
+        if any(isinstance(x, Moved) for x in flat) and target is not aten.permute.default:
+            raise Unsupported(f"row graphs keep the batch axis last ({target} on a batch-first tensor)")
+        if target in ELEMENTWISE or torch.Tag.pointwise in target.tags:
+            fn = ELEMENTWISE.get(target) or _pointwise(target)
             tensors = [self.cells(a) for a in args]
             return Rows(_map(lambda *xs: fn(*xs, **kwargs), *tensors))
-        handler = getattr(self, "_op_" + node.target.__name__.replace(".", "_"), None)
+        handler = getattr(self, "_op_" + target.__name__.replace(".", "_"), None)
         if handler is None:
-            raise Unsupported(f"row graphs do not support {node.target}")
-        return handler(tuple(node.meta["val"].shape) if isinstance(node.meta.get("val"), torch.Tensor) else None,
-                       *args, **kwargs)
+            raise Unsupported(f"row graphs do not support {target}")
+        return handler(tuple(meta.shape) if isinstance(meta, torch.Tensor) else None, *args, **kwargs)
 
     def _axis(self, cells: np.ndarray, dim: int, extra: int = 0) -> int:
         """The small axis that tensor dim ``dim`` names (rank ``cells.ndim + 1``, plus ``extra`` new axes)."""
@@ -531,21 +568,21 @@ TRACE_BATCH = 1031
 
 def row_graph(fn, args: list) -> GraphModule:
     """``fn(*args) -> tuple of tensors``, for lanes tensors ``args`` (``None`` passes through), as a graph of row
-    ops with the same inputs and outputs, for any batch size: the last axis of the ``per_env`` inputs. Traced once
-    at ``args``' other shapes; tensors ``fn`` closes over become constants."""
-    # traced on copies of env 0 at TRACE_BATCH envs: the physics has no data-dependent branches, so only the
-    # shapes matter, and those of env 0 keep every intermediate finite
-    probes = [_probe(x) for x in args]
-    with spatial.component_formulas():  # the per-component forms torch.compile traces
-        lanes_graph = _make_fx(fn, probes)
-    lanes_graph.graph.eliminate_dead_code()
-    outputs = fn(*probes)
-    # the lanes graph run on rows records the row graph directly (a second make_fx over every row op would take
-    # minutes on the articulated models' ~160k)
+    ops with the same inputs and outputs, for any batch size: the last axis of the ``per_env`` inputs. Recorded
+    once at ``args``' other shapes; tensors ``fn`` closes over become constants."""
+    # fn runs once, on lanes tensors of TRACE_BATCH envs whose values are rows: the physics has no data-dependent
+    # branches, so only the shapes matter
     builder = _Builder()
-    inputs = [builder.input(f"arg{i}", x) for i, x in enumerate(probes)]
-    results = _RowInterpreter(lanes_graph, builder).run(*(x if x is None else Rows(x) for x in inputs))
-    builder.graph.output(_nodes(tuple(_stack_rows(builder, r.cells, like) for r, like in zip(results, outputs))))
+    ops = _RowOps(builder, next(x.device for x in args if x is not None))
+    inputs = []
+    for i, x in enumerate(args):
+        meta = None if x is None else _probe(x)
+        cells = builder.input(f"arg{i}", meta)
+        inputs.append(None if x is None else _Lanes(Rows(cells), meta, ops))
+    with spatial.component_formulas():  # the per-component forms torch.compile traces
+        outputs = fn(*inputs)
+    builder.graph.output(_nodes(tuple(_stack_rows(builder, ops.cells(_values(x)), _metas(x), ops.device)
+                                      for x in outputs)))
     builder.graph.eliminate_dead_code()
     if any(node.op == "get_attr" for node in builder.graph.nodes):
         raise Unsupported("row graphs cannot hold a constant with a batch axis (one value per env)")
@@ -553,17 +590,11 @@ def row_graph(fn, args: list) -> GraphModule:
     return GraphModule(torch.nn.Module(), builder.graph)
 
 
-def _make_fx(fn, probes: list) -> GraphModule:
-    """``make_fx(fn)(*probes)``, with one fake-tensor mode for the metadata of every value it records: without one
-    in the tracing context, make_fx creates a mode per op, each capturing a Python stack trace (half the time of
-    tracing the Ant's step: 18.8 s against 10.1 s to build its kernel)."""
-    with tracing(TracingContext(FakeTensorMode(allow_fallback_kernels=True))):
-        return make_fx(fn)(*probes)
-
-
-def _probe(x: torch.Tensor | None) -> torch.Tensor | None:
-    """A per-env input as ``TRACE_BATCH`` copies of its env 0; others as they are."""
-    return x[..., :1].expand(*x.shape[:-1], TRACE_BATCH).contiguous() if per_env(x) else x
+def _probe(x: torch.Tensor) -> torch.Tensor:
+    """The metadata of an input as recorded: a per-env one at ``TRACE_BATCH`` envs, contiguous."""
+    if per_env(x):
+        return torch.empty((*x.shape[:-1], TRACE_BATCH), dtype=x.dtype, device="meta")
+    return x.to("meta")
 
 
 def _batch_sizes_symbolic(graph: torch.fx.Graph, args: list) -> None:
@@ -587,10 +618,11 @@ def _batch_sizes_symbolic(graph: torch.fx.Graph, args: list) -> None:
             node.kwargs = {k: sizes(v) for k, v in node.kwargs.items()}
 
 
-def _stack_rows(builder: _Builder, cells: np.ndarray, like: torch.Tensor) -> _Row:
-    """Rows back into a tensor shaped like ``like``; stacked level by level, so no output is a view."""
+def _stack_rows(builder: _Builder, cells: np.ndarray, like: torch.Tensor, device: torch.device) -> _Row:
+    """Rows back into a tensor shaped like ``like`` on ``device``; stacked level by level, so no output is a
+    view."""
     batch = like.shape[-1]
-    options = {"dtype": like.dtype, "device": like.device, "pin_memory": False}
+    options = {"dtype": like.dtype, "device": device, "pin_memory": False}
 
     def row(r):
         if _is_num(r):
@@ -601,5 +633,5 @@ def _stack_rows(builder: _Builder, cells: np.ndarray, like: torch.Tensor) -> _Ro
         return builder.call(aten.clone.default, (row(cells[()]),))
     if cells.size == 0:  # an empty output (a model without hinge dofs: (0, B) rates)
         return builder.call(aten.full.default, (list(like.shape), 0.0), options)
-    return builder.call(aten.stack.default, ([row(r) if cells.ndim == 1 else _stack_rows(builder, r, like[0])
+    return builder.call(aten.stack.default, ([row(r) if cells.ndim == 1 else _stack_rows(builder, r, like[0], device)
                                               for r in cells],))
