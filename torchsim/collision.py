@@ -46,6 +46,9 @@ class Contacts(NamedTuple):
         body_a, body_b: (C,) ext body indices; ``body_b`` is None where every pair is a plane pair (planes
             belong to the static world; ``torchsim.rigid`` then skips the world's side).
         friction: (C, 1) or, per env, (C, B).
+        tangent: (3, C, B) the direction MuJoCo's contact frame takes its first tangent from (``mjContact.frame``
+            before ``mju_makeFrame``): a capsule's axis where it touches a plane, else 0 (world y, or z). A pyramidal
+            friction cone's edges lie along the frame's tangents, so a sliding foot's friction depends on it.
     """
 
     pos: torch.Tensor
@@ -54,6 +57,7 @@ class Contacts(NamedTuple):
     body_a: torch.Tensor
     body_b: torch.Tensor | None
     friction: torch.Tensor
+    tangent: torch.Tensor
 
 
 def _segment(pos, rot, size):
@@ -238,7 +242,7 @@ def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Co
         rot = torch.cat((rot, spatial.quat_to_mat(mocap_quat)), -2)
     geom_pos, geom_size = lanes.param(sys.geom_pos, 1, 1), lanes.param(sys.geom_size, 1, 1)
     geom_rot = spatial.quat_to_mat(lanes.param(sys.geom_quat, 1, 1))
-    pos, normal, depth, body_a, body_b, friction = [], [], [], [], [], []
+    pos, normal, depth, body_a, body_b, friction, tangent = [], [], [], [], [], [], []
     for group in sys.contact_groups:
         on_world = _on_world(group)
         geom = group.geom_a if on_world else torch.cat((group.geom_a, group.geom_b))  # moving sides' poses at once
@@ -270,10 +274,14 @@ def contacts(sys: System, bodies: Bodies, rot: torch.Tensor | None = None) -> Co
         body_a.append(sys.geom_body[group.geom_a].repeat_interleave(k))
         body_b.append(sys.geom_body[group.geom_b].repeat_interleave(k))
         friction.append(lanes.param(group.friction, 1).repeat_interleave(k, dim=0))
+        # MuJoCo aligns a capsule-plane contact's frame with the capsule's axis (mjc_PlaneCapsule)
+        hint = rot_a[:, -1].unsqueeze(-2).expand_as(pt) if group.kind == "capsule_plane" else torch.zeros_like(pt)
+        tangent.append(hint.flatten(-3, -2))
     if not pos:
         b = bodies.x_pos.shape[-1]
         empty = bodies.x_pos.new_zeros(3, 0, b)
         idx = sys.geom_body.new_zeros(0)
-        return Contacts(empty, empty, bodies.x_pos.new_zeros(0, b), idx, idx, bodies.x_pos.new_zeros(0, 1))
+        return Contacts(empty, empty, bodies.x_pos.new_zeros(0, b), idx, idx, bodies.x_pos.new_zeros(0, 1), empty)
     return Contacts(torch.cat(pos, -2), torch.cat(normal, -2), torch.cat(depth, -2), torch.cat(body_a),
-                    None if all(map(_on_world, sys.contact_groups)) else torch.cat(body_b), torch.cat(friction, -2))
+                    None if all(map(_on_world, sys.contact_groups)) else torch.cat(body_b), torch.cat(friction, -2),
+                    torch.cat(tangent, -2))

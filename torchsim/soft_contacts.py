@@ -67,12 +67,13 @@ def normal_impulses(sys: System, con: Contacts, inverse_inertia: torch.Tensor, v
 
 def pyramid_edges(con: Contacts) -> torch.Tensor:
     """``(4, 3, C, B)``: the directions ``n + mu t1, n - mu t1, n + mu t2, n - mu t2`` of MuJoCo's pyramidal cone
-    (condim 3) at each point, ``t1, t2`` the tangents of MuJoCo's contact frame (``mju_makeFrame``: world y made
-    normal to ``n``, or world z where ``n`` is within 60 degrees of y; ``t2 = n x t1``). Frictionless points get
-    four copies of the normal."""
+    (condim 3) at each point, ``t1, t2`` the tangents of MuJoCo's contact frame (``mju_makeFrame``: the point's
+    ``con.tangent`` made normal to ``n`` where it is set, else world y, or world z where ``n`` is within 60 degrees
+    of y; ``t2 = n x t1``). Frictionless points get four copies of the normal."""
     n = con.normal
     near_y = (n[1].abs() >= 0.5).to(n.dtype)
     seed = torch.stack((torch.zeros_like(near_y), 1.0 - near_y, near_y))
+    seed = torch.where(spatial.dot(con.tangent, con.tangent) >= 0.25, con.tangent, seed)
     t1 = seed - n * spatial.dot(n, seed)
     t1 = t1 / spatial.safe_norm(t1)
     t2 = spatial.cross(n, t1)

@@ -5,8 +5,9 @@ constraint solve has them; with its position update (``kinematics.onto_tree``) t
 The bodies move as the tree (``v = J qd``, ``torchsim.articulation``). The substep's forces (gravity, actuators,
 passive springs, fluid), the gyroscopic torques and the velocity-product accelerations the joints supply
 (``articulation.velocity_product``, MuJoCo's Coriolis and centripetal bias) give the columns' momenta after the
-substep, ``tau = M qd + h (f - c)`` (:func:`column_impulse`), and the columns' rates solve ``(M + h D) qd' = tau``:
-``M`` the joint-space inertia with armature, ``D`` the joint damping, implicit as in MuJoCo's Euler integrator.
+substep, ``tau = M qd + h (f - c)`` (:func:`column_impulse`), and the columns' rates solve ``(M + h D) qd' = tau +
+J_c^T p``: ``M`` the joint-space inertia with armature, ``D`` the joint damping, implicit as in MuJoCo's Euler
+integrator, ``p`` the constraints' impulses.
 The bodies then move at ``v' = J qd'``, and the positions integrate in maximal coordinates and are put back onto the
 joints by forward kinematics from the coordinates they read (each joint exact, no springs). Measured against MuJoCo
 at the same timestep (one substep per timestep, the loader's default for this model): in the air the Ant's, the
@@ -17,14 +18,16 @@ position update reads their effect onto the tree.
 
 The constraints act on those rates as rows of the columns: every dof's soft limit (``joint_space.limit_rows``, a
 unit row; the inactive ones held at 0) and every contact point's four pyramid edges (``articulated_contacts``),
-solved together for impulses ``p >= 0`` through the rows' inverse inertia ``r (M + h D)^-1 r^T``
-(``soft_contacts.nonnegative_solve``): a foot whose limit carries the body under a contact load meets both in one
-system. Dry friction (``frictionloss``) then takes one clamped Gauss-Seidel sweep. One factorisation of ``M + h D``
-per env and substep serves every right-hand side.
+solved together for impulses ``p >= 0`` through the rows' inverse inertia ``r M^-1 r^T`` on the rates the forces
+and the damping force give, ``M^-1 (tau - h D qd)`` (``soft_contacts.nonnegative_solve``): a foot whose limit
+carries the body under a contact load meets both in one system. Dry friction (``frictionloss``) then takes one
+clamped Gauss-Seidel sweep. MuJoCo's order: its constraint solver sees ``M`` and the damping force explicitly, and
+``mj_Euler`` makes the damping implicit only in the final solve (a limit stopping a hinge at 10 rad/s lands 0.1
+rad/s apart if the constraints see ``M + h D`` instead, with the Ant's damping 1 and armature 1).
 
 The cost is dense: ``C^2 N`` products to build ``M``, one ``C x C`` factorisation with ``1 + D + F + 4K`` right-hand
-sides, and ``PIVOT_PASSES`` factorisations of the ``(D + 4K)``-row constraint system, per env and substep (``C``
-columns, ``N`` bodies, ``D`` dofs, ``F`` frictional rows, ``K`` contact points).
+sides and one of ``M + h D`` with one, and ``PIVOT_PASSES`` factorisations of the ``(D + 4K)``-row constraint
+system, per env and substep (``C`` columns, ``N`` bodies, ``D`` dofs, ``F`` frictional rows, ``K`` contact points).
 """
 
 import torch
@@ -96,8 +99,8 @@ def solve(sys: System, start: Bodies, force: torch.Tensor, torque: torch.Tensor,
     if sys.ball_joint.shape[0]:
         tau = tau.index_add(0, torch.arange(n_dof, n_dof + 3 * sys.ball_joint.shape[0], device=tau.device),
                             ball_spring_impulse(sys, start, frames, h))
-    damped = articulation.add_diagonal(articulation.add_diagonal(model.inertia, armature),
-                                       h * articulation.column_damping(sys))  # M + h D, M with armature
+    inertia = articulation.add_diagonal(model.inertia, armature)  # M, with armature
+    damping_h = h * articulation.column_damping(sys)
 
     con = contacts(sys, start, rot)
     edges = soft_contacts.pyramid_edges(con)  # (4, 3, K, B)
@@ -107,14 +110,19 @@ def solve(sys: System, start: Bodies, force: torch.Tensor, torque: torch.Tensor,
     limit_rows = unit * limits.sign if limits is not None else unit[:, :0].expand(-1, -1, batch)
     friction = joint_space.friction_columns(sys, n_columns).to(tau)  # (C, F)
     rows = torch.cat((limit_rows.expand(-1, -1, batch), edge_rows), 1)  # (C, R, B): the constraints' rows
-    solved = spatial.spd_solve(damped, torch.cat((tau.unsqueeze(1), rows,
-                                                  friction[:, :, None].expand(-1, -1, batch)), 1))
+    # as MuJoCo's Euler step: the constraints are solved on M with the damping force explicit, and the damping is
+    # implicit only in the rates' final solve, (M + h D) qd' = tau + the constraints' impulses (mj_Euler)
+    solved = spatial.spd_solve(inertia, torch.cat(((tau - damping_h * rates).unsqueeze(1), rows,
+                                                   friction[:, :, None].expand(-1, -1, batch)), 1))
     qd_free, mobility, friction_mobility = solved[:, 0], solved[:, 1:1 + rows.shape[1]], solved[:, 1 + rows.shape[1]:]
 
     impulse = constraint_impulses(sys, con, edges, limits, rows, mobility, qd_free, start, h)
-    qd = qd_free + (mobility * impulse.unsqueeze(0)).sum(1)
+    momentum = tau + (rows * impulse.unsqueeze(0)).sum(1)
     if friction.shape[1]:
-        qd = qd + dry_friction(sys, friction, friction_mobility, qd, h)
+        qd_constrained = qd_free + (mobility * impulse.unsqueeze(0)).sum(1)
+        momentum = momentum + (friction[:, :, None] * dry_friction(sys, friction, friction_mobility, qd_constrained,
+                                                                    h).unsqueeze(0)).sum(1)
+    qd = spatial.spd_solve(articulation.add_diagonal(inertia, damping_h), momentum.unsqueeze(1))[:, 0]
     zero = start._replace(xd_vel=torch.zeros_like(start.xd_vel), xd_ang=torch.zeros_like(start.xd_ang))
     edge_impulses = impulse[limit_rows.shape[1]:].view(4, edges.shape[2], batch)
     return articulation.move(zero, model, qd), con, (edge_impulses.unsqueeze(1) * edges).sum(0)
@@ -124,7 +132,7 @@ def constraint_impulses(sys: System, con: Contacts, edges: torch.Tensor, limits:
                         rows: torch.Tensor, mobility: torch.Tensor, qd_free: torch.Tensor, start: Bodies,
                         h: float) -> torch.Tensor:
     """The impulses ``p (R, B)`` (``>= 0``) of the constraints' rows ``rows (C, R, B)`` (the ``D`` limits' then the
-    ``4K`` pyramid ``edges (4, 3, K, B)``), ``mobility = (M + h D)^-1 rows``, on the columns' rates ``qd_free (C,
+    ``4K`` pyramid ``edges (4, 3, K, B)``), ``mobility = M^-1 rows``, on the columns' rates ``qd_free (C,
     B)``; ``start``, the bodies at the substep's start, gives the contacts' reference speeds."""
     batch = qd_free.shape[-1]
     if not rows.shape[1]:  # nothing to solve (nothing limited, no contact pairs)
@@ -145,16 +153,15 @@ def constraint_impulses(sys: System, con: Contacts, edges: torch.Tensor, limits:
 
 def dry_friction(sys: System, friction: torch.Tensor, mobility: torch.Tensor, qd: torch.Tensor,
                  h: float) -> torch.Tensor:
-    """The columns' rate change ``(C, B)`` of the dry-friction impulses on rates ``qd (C, B)``: along each frictional
-    row ``c_r`` (``friction (C, F)``, ``mobility = (M + h D)^-1 c_r`` ``(C, F, B)``) an impulse stopping the row,
-    clamped to ``h frictionloss``, one Gauss-Seidel sweep in row order (exact for one row, or for rows that do not
-    couple)."""
+    """The dry-friction impulses ``(F, B)`` on rates ``qd (C, B)``: along each frictional row ``c_r`` (``friction
+    (C, F)``, ``mobility = M^-1 c_r`` ``(C, F, B)``) an impulse stopping the row, clamped to ``h frictionloss``,
+    one Gauss-Seidel sweep in row order (exact for one row, or for rows that do not couple)."""
     limit = joint_space.hinge_friction_limits(sys, h)  # (F, B)
-    w = (friction[:, :, None, None] * mobility.unsqueeze(1)).sum(0)  # (F, F, B): c^T (M + h D)^-1 c
+    w = (friction[:, :, None, None] * mobility.unsqueeze(1)).sum(0)  # (F, F, B): c^T M^-1 c
     speed = (friction[:, :, None] * qd.unsqueeze(1)).sum(0)  # (F, B)
     p = []  # (1, B) slices: row graphs (torchsim.execution.kernel.rows) cannot read a (1,)-shaped constant
     for k in range(speed.shape[0]):
         row = slice(k, k + 1)
         stop = -(speed[row] + sum(w[row, j] * p[j] for j in range(k))) / w[row, k]
         p.append(torch.minimum(torch.maximum(stop, -limit[row]), limit[row]))
-    return (mobility * torch.cat(p).unsqueeze(0)).sum(1)
+    return torch.cat(p)
