@@ -187,28 +187,30 @@ def _scalar(builder: _Builder, value, like: _Row | None) -> _Row:
                                                                 "device": torch.device("cpu")})
 
 
-def _nodes(x):
-    if isinstance(x, _Row):
-        return x.node
+def _leaves(leaf, x):
+    """``leaf`` applied to every value in ``x``'s lists, tuples and dicts (an op's arguments)."""
     if isinstance(x, (list, tuple)):
-        return type(x)(_nodes(v) for v in x)
+        return type(x)(_leaves(leaf, v) for v in x)
     if isinstance(x, dict):
-        return {k: _nodes(v) for k, v in x.items()}
-    return x
+        return {k: _leaves(leaf, v) for k, v in x.items()}
+    return leaf(x)
+
+
+def _nodes(x):
+    """``x`` with its rows as their FX nodes."""
+    return _leaves(lambda v: v.node if isinstance(v, _Row) else v, x)
 
 
 def _metas(x):
-    if isinstance(x, _Row):
-        return x.node.meta["val"]
-    if isinstance(x, _Lanes):
-        return x.meta
-    if isinstance(x, torch.Tensor):  # a constant; 0-d ones stay (a meta op takes CPU scalars, as a CUDA op does)
-        return x.to("meta") if x.ndim else x
-    if isinstance(x, (list, tuple)):
-        return type(x)(_metas(v) for v in x)
-    if isinstance(x, dict):
-        return {k: _metas(v) for k, v in x.items()}
-    return x
+    """``x`` with its rows, lanes tensors and constants as meta tensors; 0-d constants stay (a meta op takes CPU
+    scalars, as a CUDA op does)."""
+    def meta(v):
+        if isinstance(v, _Row):
+            return v.node.meta["val"]
+        if isinstance(v, _Lanes):
+            return v.meta
+        return v.to("meta") if isinstance(v, torch.Tensor) and v.ndim else v
+    return _leaves(meta, x)
 
 
 def _signature(x):
@@ -248,11 +250,7 @@ class _Lanes(torch.Tensor):
 
 def _values(x):
     """The rows (or numbers, constants) that the lanes tensors in ``x`` hold."""
-    if isinstance(x, _Lanes):
-        return x.value
-    if isinstance(x, (list, tuple)):
-        return type(x)(_values(v) for v in x)
-    return x
+    return _leaves(lambda v: v.value if isinstance(v, _Lanes) else v, x)
 
 
 class Moved:
