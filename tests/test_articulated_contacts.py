@@ -170,6 +170,27 @@ def test_the_ants_constrained_steps_are_mujocos():
     assert np.median(error) < 1e-9 and (error > 1e-6).mean() < 0.01
 
 
+def test_an_upright_capsule_slides_as_mujocos():
+    """A capsule standing upright on the floor, sliding at 1.1 m/s: its axis, which MuJoCo turns a capsule's contact
+    frame to, is along the normal and gives no tangent, so the pyramid falls back to MuJoCo's frame (world x; the
+    same four edges as world y on a level floor) and its friction acts: 0.2 s at 2 ms steps on MuJoCo's path to
+    1e-9 (measured 0; with the axis taken as the tangent, the edges were the normal alone and the capsule slid on
+    unbraked)."""
+    xml = """<mujoco><option timestep="0.002"/><worldbody><geom type="plane" size="5 5 .1"/>
+      <body pos="0 0 0.19"><freejoint/><geom type="capsule" fromto="0 0 -0.1 0 0 0.1" size="0.1"/></body>
+      </worldbody></mujoco>"""
+    m = mujoco.MjModel.from_xml_string(xml)
+    d = mujoco.MjData(m)
+    d.qvel[:2] = 1.0, 0.5
+    sys = torchsim.load_mjcf(xml, dtype=F64, contact_model="articulated")
+    state = torchsim.init(sys, torch.tensor(d.qpos[None].copy()), torch.tensor(d.qvel[None].copy()))
+    for _ in range(100):
+        mujoco.mj_step(m, d)
+        state = torchsim.step(sys, state, torch.zeros(1, 0, dtype=F64))
+    assert np.linalg.norm(d.qvel[:2]) < 1.05  # braked
+    np.testing.assert_allclose(state.qd[0].numpy(), d.qvel, atol=1e-9)
+
+
 def test_actuated_walker_in_the_air_steps_as_mujoco():
     """The envs' walker2d 2 m above its floor, from 32 random states (joints uniform over their range widened by
     0.1 rad, so that some start past a limit; rates N(0, 2); random controls), one env step (4 timesteps), median

@@ -73,8 +73,11 @@ def pyramid_edges(con: Contacts) -> torch.Tensor:
     n = con.normal
     near_y = (n[1].abs() >= 0.5).to(n.dtype)
     seed = torch.stack((torch.zeros_like(near_y), 1.0 - near_y, near_y))
-    seed = torch.where(spatial.dot(con.tangent, con.tangent) >= 0.25, con.tangent, seed)
-    t1 = seed - n * spatial.dot(n, seed)
+    hint = con.tangent - n * spatial.dot(n, con.tangent)
+    # a hint along the normal (a capsule standing upright on the plane) leaves no tangent: MuJoCo then takes world x,
+    # whose pyramid on a level floor is the default's turned by 90 degrees, the same four edges
+    usable = (spatial.dot(con.tangent, con.tangent) >= 0.25) & (spatial.dot(hint, hint) > 1e-12)
+    t1 = torch.where(usable, hint, seed - n * spatial.dot(n, seed))
     t1 = t1 / spatial.safe_norm(t1)
     t2 = spatial.cross(n, t1)
     mu = con.friction
