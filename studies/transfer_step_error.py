@@ -130,5 +130,6 @@ def main() -> None:
     for name, result in ours.items():
         report(f"torchsim, {name} contacts", result, at_step)
 
+
 if __name__ == "__main__":
     main()

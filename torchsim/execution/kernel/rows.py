@@ -93,10 +93,10 @@ class _Builder:
         return self.metas[key]
 
     def input(self, name: str, probe: torch.Tensor | None) -> np.ndarray | None:
-        """A placeholder for input ``probe``, and its rows: a view as ``(rows, B)`` unbound (what ``reshape`` and
-        ``unbind`` record for a contiguous tensor, the form ``program`` reads)."""
+        """A placeholder for the input whose metadata is ``probe``, and its rows: a view as ``(rows, B)`` unbound
+        (what ``reshape`` and ``unbind`` record for a contiguous tensor, the form ``program`` reads)."""
         node = self.graph.placeholder(name)
-        node.meta["val"] = None if probe is None else torch.empty_like(probe, device="meta")
+        node.meta["val"] = probe
         if probe is None:
             return None
         if not probe.is_contiguous():
@@ -172,6 +172,7 @@ class _Row:
     __le__ = _compare(aten.le.Tensor, aten.le.Scalar)
     __ne__ = _compare(aten.ne.Tensor, aten.ne.Scalar)
     __hash__ = object.__hash__
+    del _compare
 
 
 def _call(op, *args, **kwargs) -> _Row:
@@ -217,7 +218,7 @@ def _signature(x):
     """What an op's result metadata depends on: shapes, strides and dtypes of tensors, the type of a float (the
     value of an int: it may be a dim or a size), other values."""
     if isinstance(x, (_Row, torch.Tensor)):
-        meta = _metas(x)
+        meta = x.node.meta["val"] if isinstance(x, _Row) else x  # a tensor's own: no meta copy to key on
         return type(x), tuple(meta.shape), meta.stride(), meta.dtype
     if isinstance(x, (list, tuple)):
         return tuple(_signature(v) for v in x)
@@ -384,7 +385,7 @@ class _RowOps:
 
     def call(self, func, args: tuple, kwargs: dict):
         meta = self.builder.meta(func, args, kwargs)
-        result = self.run(func, _values(args), {k: _values(v) for k, v in kwargs.items()}, meta)
+        result = self.run(func, _values(args), _values(kwargs), meta)
         if isinstance(meta, torch.Tensor):
             return _Lanes(result, meta, self)
         return [_Lanes(value, m, self) for value, m in zip(result, meta)]  # unbind, split
